@@ -1,0 +1,124 @@
+"""Parameters of the vehicle (paper Table 1, eq. 5) and of the joint-state EKF (eqs. 12, 22).
+
+Frozen dataclasses shared by every driver (node, replay, tuner). Values are SI and N/rad;
+noise entries are in the units of the filter state (log or linear stiffness).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+DISCRETIZATIONS = ("exact", "euler")
+STIFFNESS_STATES = ("log", "linear")
+MEASUREMENTS = ("heading", "yaw_rate")
+
+
+@dataclass(frozen=True)
+class VehicleParams:
+    """Rigid-body parameters of the 2-DOF bicycle model (paper eq. 4, Table 1)."""
+
+    mass: float = 720.0
+    lf: float = 0.7
+    lr: float = 0.4
+    iz: float = 0.0  # <= 0 means m * lf * lr (eq. 5)
+    antenna_x: float = 0.0
+    antenna_y: float = 0.0
+    max_steering: float = 0.7
+
+    def __post_init__(self) -> None:
+        for name in ("mass", "lf", "lr", "max_steering"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"vehicle.{name} must be a positive finite number, got {value!r}")
+        for name in ("iz", "antenna_x", "antenna_y"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"vehicle.{name} must be finite")
+
+    @property
+    def yaw_inertia(self) -> float:
+        """Iz, or its eq. (5) approximation m * lf * lr when not given."""
+        return self.iz if self.iz > 0.0 else self.mass * self.lf * self.lr
+
+
+@dataclass(frozen=True)
+class FilterOptions:
+    """Structural choices of the filter (DESIGN.md section 1)."""
+
+    discretization: str = "exact"
+    stiffness_state: str = "log"
+    measurement: str = "heading"
+    min_speed: float = 0.3
+    stiffness_bounds: tuple[float, float] = (50.0, 1.0e6)
+    gate_threshold: float = 25.0  # Mahalanobis d^2 above which an update is gated
+    max_gated: int = 5  # after this many consecutive gated epochs, accept the next one
+    max_interval: float = 2.0  # s; a longer gap re-initialises the motion states
+
+    def __post_init__(self) -> None:
+        _check_choice("ekf.discretization", self.discretization, DISCRETIZATIONS)
+        _check_choice("ekf.stiffness_state", self.stiffness_state, STIFFNESS_STATES)
+        _check_choice("ekf.measurement", self.measurement, MEASUREMENTS)
+        low, high = self.stiffness_bounds
+        if not (0.0 < low < high and math.isfinite(high)):
+            raise ValueError(f"ekf.stiffness_bounds must satisfy 0 < low < high, got {self.stiffness_bounds}")
+        if not (self.min_speed >= 0.0 and math.isfinite(self.min_speed)):
+            raise ValueError(f"ekf.min_speed must be >= 0, got {self.min_speed}")
+        if not self.gate_threshold > 0.0:
+            raise ValueError(f"ekf.gate_threshold must be > 0, got {self.gate_threshold}")
+        if not self.max_interval > 0.0:
+            raise ValueError(f"ekf.max_interval must be > 0, got {self.max_interval}")
+
+    @property
+    def state_size(self) -> int:
+        """[vy, r, psi, Cf, Cr] for heading, [vy, r, Cf, Cr] for yaw_rate."""
+        return 5 if self.measurement == "heading" else 4
+
+
+@dataclass(frozen=True)
+class NoiseParams:
+    """Q, R, the initial state and covariance (paper eqs. 12, 22).
+
+    process_noise: diag Q for vy, r, Cf, Cr (stiffness in the state's units).
+    measurement_noise: diag R for vy (m/s)^2 and heading rad^2 (or r (rad/s)^2 in yaw_rate mode).
+    heading_process_noise: Q entry of the heading state (heading mode only), rad^2.
+    """
+
+    process_noise: tuple[float, float, float, float] = (1.0e-4, 1.0e-4, 1.0e-6, 1.0e-6)
+    measurement_noise: tuple[float, float] = (4.0e-4, 1.2e-5)
+    heading_process_noise: float = 1.0e-8
+    initial_stiffness: tuple[float, float] = (1000.0, 1000.0)
+    initial_covariance: tuple[float, float, float, float] = (1.0e-2, 1.0e-2, 4.0, 4.0)
+    initial_heading_covariance: float = 1.0e-2
+
+    def __post_init__(self) -> None:
+        _check_vector("ekf.process_noise", self.process_noise, 4, allow_zero=True)
+        _check_vector("ekf.measurement_noise", self.measurement_noise, 2, allow_zero=False)
+        _check_vector("ekf.initial_stiffness", self.initial_stiffness, 2, allow_zero=False)
+        _check_vector("ekf.initial_covariance", self.initial_covariance, 4, allow_zero=True)
+        _check_vector("ekf.heading_process_noise", (self.heading_process_noise,), 1, allow_zero=True)
+        _check_vector("ekf.initial_heading_covariance", (self.initial_heading_covariance,), 1, allow_zero=True)
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """Everything the filter core needs."""
+
+    vehicle: VehicleParams = field(default_factory=VehicleParams)
+    options: FilterOptions = field(default_factory=FilterOptions)
+    noise: NoiseParams = field(default_factory=NoiseParams)
+
+
+def _check_choice(key: str, value: str, choices: tuple[str, ...]) -> None:
+    if value not in choices:
+        raise ValueError(f"{key} must be one of {', '.join(choices)}, got {value!r}")
+
+
+def _check_vector(key: str, values: tuple[float, ...], length: int, *, allow_zero: bool) -> None:
+    if len(values) != length:
+        raise ValueError(f"{key} must have {length} entries, got {len(values)}")
+    for value in values:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise ValueError(f"{key} entries must be finite numbers, got {value!r}")
+        if value < 0.0 or (value == 0.0 and not allow_zero):
+            bound = ">= 0" if allow_zero else "> 0"
+            raise ValueError(f"{key} entries must be {bound}, got {value!r}")
