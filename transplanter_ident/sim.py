@@ -1,0 +1,425 @@
+"""Continuous-time truth simulator of the rice transplanter's lateral dynamics.
+
+The truth model is the 2-DOF bicycle model of the paper (Li, Li & Guo 2020) in the body
+frame at the CG:
+
+- eq. (1), corrected (DESIGN.md section 1): ``m (dvy/dt + vx r) = 2 Fyf cos(delta) + 2 Fyr``
+  and ``Iz dr/dt = 2 lf Fyf cos(delta) - 2 lr Fyr``; with ``small_angle`` cos(delta) is 1;
+- eq. (2), tire forces: linear ``F = C alpha``, or the saturating ``Fmax tanh(C alpha / Fmax)``
+  (same small-slip slope C, ``Fmax = friction * Fz`` from the static axle load per tire);
+- eq. (3), slip angles: ``alpha_f = delta - (vy + lf r) / vx``, ``alpha_r = (lr r - vy) / vx``;
+- eq. (4): with linear tires and ``small_angle`` the truth equals the state-space model exactly;
+- eq. (5): ``Iz = m lf lr`` unless the vehicle gives Iz (``VehicleParams.yaw_inertia``).
+
+``[vy, r, psi]`` (``psi' = r``) is integrated with classical RK4 on a fixed fine grid; the
+steering angle, vx and the stiffness are evaluated at the RK4 stage times. The grid step
+divides the GNSS period, so GNSS samples fall on grid points, and it is refined automatically
+when a stiff configuration (very low speed, very stiff tires) would make RK4 inaccurate.
+The sensors are sampled like real ones: GNSS velocity of the antenna in ENU and the heading
+together at ``gnss_rate``, the steering angle at ``steering_rate`` on its own clock.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from transplanter_ident.parameters import VehicleParams
+
+GRAVITY = 9.80665  # m/s^2
+TIRE_MODELS = ("linear", "saturating")
+# RK4 is stable on the negative real axis up to h*|lambda| = 2.79; keeping the step below
+# 1 / ||A||_inf keeps the fast lateral modes both stable and accurate.
+_MAX_STEP_STIFFNESS = 1.0
+
+Signal = Callable[[np.ndarray], np.ndarray]
+
+
+# --------------------------------------------------------------------------- steering inputs
+
+
+@dataclass(frozen=True)
+class SineSteering:
+    """delta(t) = amplitude * sin(2 pi t / period), rad."""
+
+    amplitude: float
+    period: float
+
+    def __call__(self, t: np.ndarray) -> np.ndarray:
+        return self.amplitude * np.sin((2.0 * math.pi / self.period) * np.asarray(t, dtype=float))
+
+
+@dataclass(frozen=True)
+class StepSteering:
+    """0 before ``start``, a linear ramp over ``ramp`` seconds, then ``amplitude`` (rad)."""
+
+    amplitude: float
+    start: float = 1.0
+    ramp: float = 0.5
+
+    def __call__(self, t: np.ndarray) -> np.ndarray:
+        t = np.asarray(t, dtype=float)
+        if self.ramp <= 0.0:
+            return np.where(t >= self.start, self.amplitude, 0.0)
+        return self.amplitude * np.clip((t - self.start) / self.ramp, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class MultisineSteering:
+    """Sum of sines with the given periods and phases; each has amplitude / n, so |delta| <= amplitude."""
+
+    amplitude: float
+    periods: tuple[float, ...]
+    phases: tuple[float, ...]
+
+    def __call__(self, t: np.ndarray) -> np.ndarray:
+        t = np.asarray(t, dtype=float)
+        out = np.zeros_like(t)
+        for period, phase in zip(self.periods, self.phases, strict=True):
+            out = out + np.sin((2.0 * math.pi / period) * t + phase)
+        return (self.amplitude / len(self.periods)) * out
+
+
+def sine_steering(amplitude: float, period: float) -> Signal:
+    """A sine steer of the given amplitude (rad) and period (s)."""
+    _require_positive("period", period)
+    _require_finite("amplitude", amplitude)
+    return SineSteering(float(amplitude), float(period))
+
+
+def step_steering(amplitude: float, start: float = 1.0, ramp: float = 0.5) -> Signal:
+    """The paper's step test (20 or 30 degrees), ramped over ``ramp`` s (0 = ideal step)."""
+    _require_finite("amplitude", amplitude)
+    _require_finite("start", start)
+    if not (math.isfinite(ramp) and ramp >= 0.0):
+        raise ValueError(f"ramp must be >= 0, got {ramp!r}")
+    return StepSteering(float(amplitude), float(start), float(ramp))
+
+
+def multisine_steering(amplitude: float, periods: Sequence[float], seed: int = 0) -> Signal:
+    """A multi-sine steer with random phases drawn from ``seed``; |delta| never exceeds ``amplitude``."""
+    _require_finite("amplitude", amplitude)
+    if len(periods) == 0:
+        raise ValueError("multisine_steering needs at least one period")
+    for period in periods:
+        _require_positive("period", period)
+    phases = np.random.default_rng(seed).uniform(0.0, 2.0 * math.pi, size=len(periods))
+    return MultisineSteering(float(amplitude), tuple(float(p) for p in periods), tuple(phases.tolist()))
+
+
+# --------------------------------------------------------------------------- configuration
+
+
+@dataclass(frozen=True)
+class StiffnessSchedule:
+    """Piecewise-constant true cornering stiffness, N/rad per tire (the model's 2*C per axle).
+
+    Segment i holds ``front[i]``, ``rear[i]`` from ``times[i]``. With ``transition > 0`` the
+    change at ``times[i]`` is a linear blend over ``[times[i], times[i] + transition]``
+    (overlapping blends add up; the value after the last blend is always the segment value).
+    """
+
+    times: tuple[float, ...] = (0.0,)
+    front: tuple[float, ...] = (8000.0,)
+    rear: tuple[float, ...] = (10000.0,)
+    transition: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (len(self.times) == len(self.front) == len(self.rear) and len(self.times) > 0):
+            raise ValueError(
+                "stiffness schedule: times, front and rear must be non-empty and of equal length"
+            )
+        if self.times[0] != 0.0:
+            raise ValueError(f"stiffness schedule must start at time 0.0, got {self.times[0]!r}")
+        if any(not math.isfinite(b) or b <= a for a, b in zip(self.times[:-1], self.times[1:], strict=True)):
+            raise ValueError(f"stiffness schedule times must be strictly ascending, got {self.times}")
+        for value in (*self.front, *self.rear):
+            _require_positive("stiffness", value)
+        if not (math.isfinite(self.transition) and self.transition >= 0.0):
+            raise ValueError(f"stiffness transition must be >= 0, got {self.transition!r}")
+
+    def at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(Cf, Cr) at times ``t`` (any shape), N/rad per tire."""
+        t = np.asarray(t, dtype=float)
+        return self._blend(t, self.front), self._blend(t, self.rear)
+
+    def _blend(self, t: np.ndarray, values: tuple[float, ...]) -> np.ndarray:
+        out = np.full(t.shape, values[0], dtype=float)
+        for start, before, after in zip(self.times[1:], values[:-1], values[1:], strict=True):
+            out = out + (after - before) * _ramp(t, start, self.transition)
+        return out
+
+
+@dataclass(frozen=True)
+class SensorNoise:
+    """1-sigma Gaussian sensor noise."""
+
+    velocity: float = 0.02  # m/s per axis, GNSS velocity (ENU)
+    heading: float = math.radians(0.2)  # rad
+    steering: float = math.radians(0.1)  # rad, steering-angle sensor
+
+    def __post_init__(self) -> None:
+        for name in ("velocity", "heading", "steering"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"noise.{name} must be >= 0, got {value!r}")
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """A simulation scenario. ``speed_profile`` (vx(t), m/s) overrides the constant ``speed``."""
+
+    vehicle: VehicleParams = field(default_factory=VehicleParams)
+    duration: float = 120.0  # s
+    speed: float = 2.0  # m/s, constant forward speed vx at the CG
+    speed_profile: Signal | None = None
+    steering: Signal = field(default_factory=lambda: sine_steering(math.radians(15.0), 6.0))
+    stiffness: StiffnessSchedule = field(default_factory=StiffnessSchedule)
+    tire: str = "linear"  # "linear" | "saturating"
+    friction: float = 0.8  # mu of the saturating tire
+    gnss_rate: float = 5.0  # Hz, velocity and heading
+    steering_rate: float = 50.0  # Hz
+    steering_time_offset: float = 0.0  # s, first steering sample time (phase relative to GNSS)
+    noise: SensorNoise = field(default_factory=SensorNoise)
+    initial_heading: float = 0.0  # rad, ENU yaw
+    integration_step: float = 0.002  # s, upper bound; the used step divides 1 / gnss_rate
+    seed: int = 0
+    small_angle: bool = True  # cos(delta) -> 1, so linear tires reproduce eq. (4) exactly
+
+    def __post_init__(self) -> None:
+        if self.tire not in TIRE_MODELS:
+            raise ValueError(f"tire must be one of {', '.join(TIRE_MODELS)}, got {self.tire!r}")
+        for name in ("duration", "speed", "friction", "gnss_rate", "steering_rate", "integration_step"):
+            _require_positive(name, getattr(self, name))
+        _require_finite("steering_time_offset", self.steering_time_offset)
+        _require_finite("initial_heading", self.initial_heading)
+
+
+@dataclass(frozen=True)
+class SimResult:
+    """Sensor samples (with noise) and the ground truth at the GNSS sample times."""
+
+    gnss_time: np.ndarray  # (N,) s, starting at 0
+    velocity_enu: np.ndarray  # (N, 2) east, north velocity of the antenna, with noise
+    heading: np.ndarray  # (N,) ENU yaw of the body, wrapped to (-pi, pi], with noise
+    steering_time: np.ndarray  # (M,) s
+    steering: np.ndarray  # (M,) measured steering angle, with noise
+    truth_vx: np.ndarray  # (N,) CG, body frame
+    truth_vy: np.ndarray  # (N,) lateral velocity at the CG
+    truth_yaw_rate: np.ndarray  # (N,)
+    truth_heading: np.ndarray  # (N,) unwrapped ENU yaw
+    truth_cf: np.ndarray  # (N,) N/rad per tire
+    truth_cr: np.ndarray  # (N,)
+    truth_steering: np.ndarray  # (N,) true delta at gnss_time
+
+
+# --------------------------------------------------------------------------- simulation
+
+
+@dataclass(frozen=True)
+class _Inputs:
+    """Exogenous signals on the half-step grid: entries 2k, 2k+1, 2k+2 are the RK4 stages of step k."""
+
+    step: float
+    vx: np.ndarray
+    delta: np.ndarray
+    cf: np.ndarray
+    cr: np.ndarray
+
+
+def simulate(config: SimConfig) -> SimResult:
+    """Integrate the truth model and sample the sensors."""
+    gnss_time = _sample_times(0.0, config.gnss_rate, config.duration)
+    steering_time = _sample_times(config.steering_time_offset, config.steering_rate, config.duration)
+    inputs, stride = _build_inputs(config, n_periods=len(gnss_time) - 1)
+    vy, r, psi = _integrate(config, inputs)
+    vy, r, psi = vy[::stride], r[::stride], psi[::stride]
+
+    vx = _speed(config, gnss_time)
+    cf, cr = config.stiffness.at(gnss_time)
+    delta_true = _evaluate(config.steering, gnss_time)
+    vel_enu = antenna_velocity_enu(vx, vy, r, psi, config.vehicle)
+
+    rng = np.random.default_rng(config.seed)
+    noise = config.noise
+    vel_meas = vel_enu + noise.velocity * rng.standard_normal(vel_enu.shape)
+    heading_meas = wrap_angle(psi + noise.heading * rng.standard_normal(psi.shape))
+    steer_meas = _evaluate(config.steering, steering_time) + noise.steering * rng.standard_normal(
+        steering_time.shape
+    )
+
+    return SimResult(
+        gnss_time=gnss_time,
+        velocity_enu=vel_meas,
+        heading=heading_meas,
+        steering_time=steering_time,
+        steering=steer_meas,
+        truth_vx=vx,
+        truth_vy=vy,
+        truth_yaw_rate=r,
+        truth_heading=psi,
+        truth_cf=cf,
+        truth_cr=cr,
+        truth_steering=delta_true,
+    )
+
+
+def antenna_velocity_enu(
+    vx: np.ndarray, vy: np.ndarray, r: np.ndarray, psi: np.ndarray, vehicle: VehicleParams
+) -> np.ndarray:
+    """(N, 2) east/north velocity of the antenna: v_cg + r x lever arm, rotated by psi."""
+    vxa = vx - r * vehicle.antenna_y
+    vya = vy + r * vehicle.antenna_x
+    cos_psi, sin_psi = np.cos(psi), np.sin(psi)
+    return np.column_stack((vxa * cos_psi - vya * sin_psi, vxa * sin_psi + vya * cos_psi))
+
+
+def wrap_angle(angle: np.ndarray) -> np.ndarray:
+    """Wrap to (-pi, pi]."""
+    wrapped = math.pi - np.mod(math.pi - np.asarray(angle, dtype=float), 2.0 * math.pi)
+    return np.where(wrapped <= -math.pi, wrapped + 2.0 * math.pi, wrapped)
+
+
+def _sample_times(offset: float, rate: float, duration: float) -> np.ndarray:
+    """Sample times offset + k / rate, k = 0, 1, ..., up to duration (1e-9 s tolerance)."""
+    count = math.floor((duration - offset) * rate + 1e-9) + 1
+    return offset + np.arange(max(count, 0)) / rate
+
+
+def _speed(config: SimConfig, t: np.ndarray) -> np.ndarray:
+    if config.speed_profile is None:
+        return np.full(np.shape(t), config.speed, dtype=float)
+    return _evaluate(config.speed_profile, t)
+
+
+def _evaluate(signal: Signal, t: np.ndarray) -> np.ndarray:
+    """signal(t) as a float array of the shape of t (a scalar result is broadcast)."""
+    return np.broadcast_to(np.asarray(signal(t), dtype=float), np.shape(t)).copy()
+
+
+def _build_inputs(config: SimConfig, n_periods: int) -> tuple[_Inputs, int]:
+    """Signals on the integration grid, and the number of steps per GNSS period."""
+    period = 1.0 / config.gnss_rate
+    stride = max(1, math.ceil(period / config.integration_step - 1e-9))
+    while True:
+        inputs = _evaluate_inputs(config, period / stride, n_periods * stride)
+        refine = math.ceil(inputs.step * _max_system_norm(inputs, config.vehicle) / _MAX_STEP_STIFFNESS)
+        if refine <= 1:
+            return inputs, stride
+        stride *= refine
+
+
+def _evaluate_inputs(config: SimConfig, step: float, n_steps: int) -> _Inputs:
+    t_half = np.arange(2 * n_steps + 1) * (0.5 * step)
+    vx = _speed(config, t_half)
+    if not np.all(np.isfinite(vx)) or np.any(vx <= 0.0):
+        raise ValueError(
+            "vx must stay positive and finite: the slip angles of eq. (3) are singular at vx = 0"
+        )
+    delta = _evaluate(config.steering, t_half)
+    if not np.all(np.isfinite(delta)):
+        raise ValueError("the steering function must return finite values")
+    cf, cr = config.stiffness.at(t_half)
+    return _Inputs(step=step, vx=vx, delta=delta, cf=cf, cr=cr)
+
+
+def _max_system_norm(inputs: _Inputs, vehicle: VehicleParams) -> float:
+    """Largest ||A||_inf of eq. (4) on the grid; bounds the fastest mode (also for saturating tires)."""
+    m, iz, lf, lr = vehicle.mass, vehicle.yaw_inertia, vehicle.lf, vehicle.lr
+    cf, cr, vx = inputs.cf, inputs.cr, inputs.vx
+    row_vy = 2.0 * (cf + cr) / (m * vx) + np.abs(vx + 2.0 * (cf * lf - cr * lr) / (m * vx))
+    row_r = np.abs(2.0 * (cr * lr - cf * lf)) / (iz * vx) + 2.0 * (lf**2 * cf + lr**2 * cr) / (iz * vx)
+    return float(np.max(np.maximum(row_vy, row_r)))
+
+
+def _integrate(config: SimConfig, inputs: _Inputs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """RK4 over the grid; returns vy, r, psi at every grid point (n_steps + 1 values each)."""
+    h = inputs.step
+    n_steps = (len(inputs.vx) - 1) // 2
+    deriv = _derivative(config, inputs)
+    vy_out = np.empty(n_steps + 1)
+    r_out = np.empty(n_steps + 1)
+    psi_out = np.empty(n_steps + 1)
+    vy, r, psi = 0.0, 0.0, config.initial_heading
+    vy_out[0], r_out[0], psi_out[0] = vy, r, psi
+    half, sixth = 0.5 * h, h / 6.0
+    for k in range(n_steps):
+        a1, b1 = deriv(vy, r, 2 * k)
+        vy2, r2 = vy + half * a1, r + half * b1
+        a2, b2 = deriv(vy2, r2, 2 * k + 1)
+        vy3, r3 = vy + half * a2, r + half * b2
+        a3, b3 = deriv(vy3, r3, 2 * k + 1)
+        vy4, r4 = vy + h * a3, r + h * b3
+        a4, b4 = deriv(vy4, r4, 2 * k + 2)
+        psi += sixth * (r + 2.0 * r2 + 2.0 * r3 + r4)
+        vy += sixth * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
+        r += sixth * (b1 + 2.0 * b2 + 2.0 * b3 + b4)
+        vy_out[k + 1], r_out[k + 1], psi_out[k + 1] = vy, r, psi
+    return vy_out, r_out, psi_out
+
+
+def _derivative(config: SimConfig, inputs: _Inputs) -> Callable[[float, float, int], tuple[float, float]]:
+    """(dvy/dt, dr/dt) of eq. (1) at half-grid index i, with the tire model of the config.
+
+    The RK4 loop is scalar, so the per-stage constants are Python floats, not numpy scalars.
+    """
+    vehicle = config.vehicle
+    m, iz, lf, lr = vehicle.mass, vehicle.yaw_inertia, vehicle.lf, vehicle.lr
+    cos_delta = np.ones_like(inputs.delta) if config.small_angle else np.cos(inputs.delta)
+    vx = inputs.vx.tolist()
+    inv_vx = (1.0 / inputs.vx).tolist()
+    delta = inputs.delta.tolist()
+    cf, cr = inputs.cf.tolist(), inputs.cr.tolist()
+    front = (2.0 * cos_delta / m).tolist()  # 2 cos(delta) / m
+    front_yaw = (2.0 * lf * cos_delta / iz).tolist()  # 2 lf cos(delta) / Iz
+    rear, rear_yaw = 2.0 / m, -2.0 * lr / iz
+
+    if config.tire == "linear":
+
+        def linear(vy: float, r: float, i: int) -> tuple[float, float]:
+            force_f = cf[i] * (delta[i] - (vy + lf * r) * inv_vx[i])
+            force_r = cr[i] * ((lr * r - vy) * inv_vx[i])
+            return front[i] * force_f + rear * force_r - vx[i] * r, front_yaw[
+                i
+            ] * force_f + rear_yaw * force_r
+
+        return linear
+
+    fmax_f, fmax_r = axle_force_limits(vehicle, config.friction)
+    tanh = math.tanh
+
+    def saturating(vy: float, r: float, i: int) -> tuple[float, float]:
+        force_f = fmax_f * tanh(cf[i] * (delta[i] - (vy + lf * r) * inv_vx[i]) / fmax_f)
+        force_r = fmax_r * tanh(cr[i] * ((lr * r - vy) * inv_vx[i]) / fmax_r)
+        return front[i] * force_f + rear * force_r - vx[i] * r, front_yaw[i] * force_f + rear_yaw * force_r
+
+    return saturating
+
+
+def axle_force_limits(vehicle: VehicleParams, friction: float) -> tuple[float, float]:
+    """Fmax per tire, front and rear: friction * static axle load / 2."""
+    wheelbase = vehicle.lf + vehicle.lr
+    weight = vehicle.mass * GRAVITY
+    return (
+        friction * weight * vehicle.lr / wheelbase / 2.0,
+        friction * weight * vehicle.lf / wheelbase / 2.0,
+    )
+
+
+def _ramp(t: np.ndarray, start: float, width: float) -> np.ndarray:
+    if width <= 0.0:
+        return (t >= start).astype(float)
+    return np.clip((t - start) / width, 0.0, 1.0)
+
+
+def _require_positive(name: str, value: float) -> None:
+    if isinstance(value, bool) or not (math.isfinite(value) and value > 0.0):
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+
+
+def _require_finite(name: str, value: float) -> None:
+    if isinstance(value, bool) or not math.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value!r}")
