@@ -274,7 +274,7 @@ def ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steerin
 
 @numba.njit(cache=True)
 def _joseph_update(x, p, r_noise, h1, e0, e1, s00, s01, s11, det, ws):  # noqa: ANN001, ANN202
-    """x += K e; P = (I - K H) P (I - K H)^T + K R K^T, with H selecting states 0 and h1."""
+    """Update: x += K e; P = (I - K H) P (I - K H)^T + K R K^T, H selecting states 0 and h1."""
     n = x.shape[0]
     gain, ikh, tmp = ws[5], ws[6], ws[7]
     i00, i01, i11 = s11 / det, -s01 / det, s00 / det

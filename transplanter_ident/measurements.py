@@ -123,7 +123,7 @@ def interval_line(times: Sequence[float], values: Sequence[float], start: float,
     level = [float(np.interp(t, times, values)) for t in knots]
     centre = 0.5 * (start + end)
     area = moment = 0.0
-    for a, b, ya, yb in zip(knots[:-1], knots[1:], level[:-1], level[1:]):
+    for a, b, ya, yb in zip(knots[:-1], knots[1:], level[:-1], level[1:], strict=True):
         area += 0.5 * (b - a) * (ya + yb)
         mid = 0.5 * (a + b)
         moment += (b - a) / 6.0 * ((a - centre) * ya + 2.0 * (mid - centre) * (ya + yb) + (b - centre) * yb)
@@ -263,7 +263,7 @@ class EpochAssembler:
             samples.popleft()
         if not samples or samples[-1][0] < end - self.settings.steering_timeout:
             return None
-        times, values = zip(*samples)
+        times, values = zip(*samples, strict=True)
         return interval_line(times, values, start, end)
 
 

@@ -1,0 +1,372 @@
+"""Load, validate and write the estimator's ROS 2 parameters YAML (DESIGN.md section 3).
+
+The file format is the one `--params-file` takes::
+
+    estimator:
+      ros__parameters:
+        vehicle: {mass: 720.0, ...}
+        ekf: {process_noise: [1.0e-4, ...], ...}
+
+Nested mappings under ``ros__parameters`` are flattened to dotted keys (``ekf.process_noise``)
+exactly as rclpy does. Layering follows ROS 2 closely: files apply in the order given and a later
+file overrides an earlier one key by key; inside one file the ``/**`` section applies first and the
+node's own section (``estimator`` or ``/estimator``) overrides it. (rcl itself merges all files'
+``/**`` sections before all node sections; the simpler per-file rule above only differs when a later
+file's ``/**`` sets a key that an earlier file set under the node name.)
+
+Every error is a :class:`ParamsError` whose one-line message names the file, the key and the reason.
+This module does not import rclpy.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import re
+import tempfile
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from transplanter_ident.parameters import EstimatorConfig, FilterOptions, NoiseParams, VehicleParams
+
+FRAMES = ("enu", "ned")
+WILDCARD = "/**"
+
+
+class ParamsError(ValueError):
+    """A bad parameters file or value; ``key`` is the dotted key at fault (or None)."""
+
+    def __init__(self, message: str, key: str | None = None) -> None:
+        super().__init__(" ".join(str(message).split("\n")))
+        self.key = key
+
+
+@dataclass(frozen=True)
+class TopicConfig:
+    """Input topic names."""
+
+    velocity: str = "/gnss/vel"
+    heading: str = "/gnss/heading"
+    steering: str = "/steering_angle"
+
+    def __post_init__(self) -> None:
+        for name in ("velocity", "heading", "steering"):
+            if not getattr(self, name):
+                raise ValueError(f"topics.{name} must be a non-empty topic name")
+
+
+@dataclass(frozen=True)
+class FrameConfig:
+    """Frames of the GNSS velocity and heading: ``enu`` or ``ned`` (compass heading)."""
+
+    velocity: str = "enu"
+    heading: str = "enu"
+
+    def __post_init__(self) -> None:
+        for name in ("velocity", "heading"):
+            if getattr(self, name) not in FRAMES:
+                raise ValueError(f"frames.{name} must be one of enu, ned, got {getattr(self, name)!r}")
+
+
+@dataclass(frozen=True)
+class SteeringConfig:
+    """Which joint of a sensor_msgs/JointState carries the steering angle."""
+
+    joint_name: str = "front_steering"
+
+    def __post_init__(self) -> None:
+        if not self.joint_name:
+            raise ValueError("steering.joint_name must be a non-empty string")
+
+
+@dataclass(frozen=True)
+class EstimatorParams:
+    """Everything the parameters file holds; ``extra`` keeps other keys flat (``diagnostics.x``)."""
+
+    config: EstimatorConfig = field(default_factory=EstimatorConfig)
+    topics: TopicConfig = field(default_factory=TopicConfig)
+    frames: FrameConfig = field(default_factory=FrameConfig)
+    steering: SteeringConfig = field(default_factory=SteeringConfig)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+# namespace -> (dataclass, where it lives in EstimatorParams); "ekf" is split over two dataclasses.
+_SECTIONS: dict[str, tuple[type, ...]] = {
+    "vehicle": (VehicleParams,),
+    "ekf": (FilterOptions, NoiseParams),
+    "topics": (TopicConfig,),
+    "frames": (FrameConfig,),
+    "steering": (SteeringConfig,),
+}
+
+
+def _defaults(cls: type) -> dict[str, Any]:
+    return {f.name: f.default for f in dataclasses.fields(cls)}
+
+
+#: dotted key -> default value, for every key that maps onto a dataclass field.
+KNOWN_KEYS: dict[str, Any] = {
+    f"{ns}.{name}": default
+    for ns, classes in _SECTIONS.items()
+    for cls in classes
+    for name, default in _defaults(cls).items()
+}
+#: keys written as YAML integers; every other number is written as a float.
+INT_KEYS = frozenset(k for k, v in KNOWN_KEYS.items() if isinstance(v, int) and not isinstance(v, bool))
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _convert(key: str, value: Any, default: Any) -> Any:
+    """Type-check one known key's value against its default; ints become floats where floats are due."""
+    if isinstance(default, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise ParamsError(f"{key} must be a list of {len(default)} numbers, got {value!r}", key)
+        if len(value) != len(default):
+            raise ParamsError(f"{key} must have {len(default)} entries, got {len(value)}", key)
+        for entry in value:
+            if not _is_number(entry):
+                raise ParamsError(f"{key} entries must be numbers, got {entry!r}", key)
+        return tuple(float(entry) for entry in value)
+    if isinstance(default, str):
+        if not isinstance(value, str):
+            raise ParamsError(f"{key} must be a string, got {value!r}", key)
+        return value
+    if isinstance(default, int):
+        if not (_is_number(value) and isinstance(value, int)):
+            raise ParamsError(f"{key} must be an integer, got {value!r}", key)
+        if value < 0:
+            raise ParamsError(f"{key} must be >= 0, got {value!r}", key)
+        return value
+    if not _is_number(value):
+        raise ParamsError(f"{key} must be a number, got {value!r}", key)
+    return float(value)
+
+
+def _build(cls: type, values: Mapping[str, Any]) -> Any:
+    """Construct one dataclass from the values that belong to it, re-raising its ValueError as ParamsError."""
+    names = _defaults(cls)
+    try:
+        return cls(**{k: v for k, v in values.items() if k in names})
+    except ValueError as exc:
+        message = str(exc)
+        raise ParamsError(message, message.split(" ", 1)[0]) from None
+
+
+def flat_to_params(flat: Mapping[str, Any]) -> EstimatorParams:
+    """Build validated parameters from flat dotted keys; missing keys keep their defaults.
+
+    Unknown keys under a known namespace (``ekf.``, ``vehicle.``, ``topics.``, ``frames.``,
+    ``steering.``) are errors, to catch typos; keys of other namespaces go to ``extra``.
+    """
+    sections: dict[str, dict[str, Any]] = {ns: {} for ns in _SECTIONS}
+    extra: dict[str, Any] = {}
+    for key, value in flat.items():
+        namespace, _, name = key.partition(".")
+        if namespace not in _SECTIONS:
+            extra[key] = value
+            continue
+        if key not in KNOWN_KEYS:
+            known = ", ".join(k.partition(".")[2] for k in KNOWN_KEYS if k.startswith(namespace + "."))
+            raise ParamsError(f"{key} is not a known parameter (known {namespace}.*: {known})", key)
+        sections[namespace][name] = _convert(key, value, KNOWN_KEYS[key])
+
+    ekf = sections["ekf"]
+    config = EstimatorConfig(
+        vehicle=_build(VehicleParams, sections["vehicle"]),
+        options=_build(FilterOptions, ekf),
+        noise=_build(NoiseParams, ekf),
+    )
+    return EstimatorParams(
+        config=config,
+        topics=_build(TopicConfig, sections["topics"]),
+        frames=_build(FrameConfig, sections["frames"]),
+        steering=_build(SteeringConfig, sections["steering"]),
+        extra=extra,
+    )
+
+
+def params_to_flat(p: EstimatorParams) -> dict[str, Any]:
+    """Flatten parameters to dotted keys (tuples become lists); the inverse of :func:`flat_to_params`."""
+    objects = {
+        "vehicle": (p.config.vehicle,),
+        "ekf": (p.config.options, p.config.noise),
+        "topics": (p.topics,),
+        "frames": (p.frames,),
+        "steering": (p.steering,),
+    }
+    flat: dict[str, Any] = {}
+    for namespace, objs in objects.items():
+        for obj in objs:
+            for f in dataclasses.fields(obj):
+                value = getattr(obj, f.name)
+                flat[f"{namespace}.{f.name}"] = list(value) if isinstance(value, tuple) else value
+    flat.update(p.extra)
+    return flat
+
+
+class _Loader(yaml.SafeLoader):
+    """SafeLoader that also reads YAML 1.2 floats such as ``1e-4`` as numbers, as the rcl parser does."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+    list("-+0123456789."),
+)
+
+
+def _flatten(mapping: Mapping[Any, Any], prefix: str, out: dict[str, Any], source: str) -> None:
+    for name, value in mapping.items():
+        key = f"{prefix}{name}"
+        if not isinstance(name, str):
+            raise ParamsError(f"{source}: parameter name {key!r} is not a string", key)
+        if isinstance(value, Mapping):
+            _flatten(value, key + ".", out, source)
+        elif value is None:
+            raise ParamsError(f"{source}: {key} has no value", key)
+        else:
+            out[key] = value
+
+
+def read_params_file(path: str | Path, node_name: str = "estimator") -> dict[str, Any]:
+    """Read one params file: the flat parameters of ``/**`` overlaid with those of ``node_name``."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ParamsError(f"{path}: cannot read parameters file: {exc.strerror or exc}") from None
+    try:
+        document = yaml.load(text, Loader=_Loader)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        reason = getattr(exc, "problem", None) or type(exc).__name__
+        raise ParamsError(f"{path}: invalid YAML{where}: {reason}") from None
+    if not isinstance(document, Mapping):
+        raise ParamsError(f"{path}: top level must be a mapping of node names, got {type(document).__name__}")
+    sections = [n for n in (WILDCARD, node_name, "/" + node_name.lstrip("/")) if n in document]
+    if not sections:
+        found = ", ".join(map(str, document)) or "nothing"
+        raise ParamsError(f"{path}: no '{WILDCARD}' or '{node_name}' section (found: {found})")
+    flat: dict[str, Any] = {}
+    for section in dict.fromkeys(sections):
+        body = document[section]
+        if not isinstance(body, Mapping) or "ros__parameters" not in body:
+            raise ParamsError(f"{path}: '{section}' must hold a 'ros__parameters' mapping")
+        params = body["ros__parameters"] or {}
+        if not isinstance(params, Mapping):
+            raise ParamsError(f"{path}: '{section}.ros__parameters' must be a mapping, got {params!r}")
+        _flatten(params, "", flat, str(path))
+    return flat
+
+
+def load_params(paths: Sequence[str | Path], node_name: str = "estimator") -> EstimatorParams:
+    """Layer params files in order (later files override earlier ones per key) and validate the result."""
+    if isinstance(paths, (str, Path)):
+        paths = [paths]
+    merged: dict[str, Any] = {}
+    for path in paths:
+        flat = read_params_file(path, node_name)
+        try:
+            flat_to_params(flat)
+        except ParamsError as exc:
+            raise ParamsError(f"{path}: {exc}", exc.key) from None
+        merged.update(flat)
+    try:
+        return flat_to_params(merged)
+    except ParamsError as exc:
+        raise ParamsError(f"{', '.join(map(str, paths))}: {exc}", exc.key) from None
+
+
+def _format_scalar(key: str, value: Any, *, as_int: bool = False) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if _is_number(value):
+        if as_int and isinstance(value, int):
+            return str(value)
+        number = float(value)
+        if not math.isfinite(number):
+            raise ParamsError(f"{key} must be finite, got {value!r}", key)
+        text = repr(number)
+        if "e" in text and "." not in text:
+            text = text.replace("e", ".0e")
+        return text
+    if isinstance(value, str):
+        plain = re.fullmatch(r"[A-Za-z_/~][A-Za-z0-9_/.~-]*", value) is not None
+        if plain and yaml.load(value, Loader=_Loader) == value:
+            return value
+        return json.dumps(value)
+    raise ParamsError(f"{key} has an unsupported type {type(value).__name__}", key)
+
+
+def _format_value(key: str, value: Any) -> str:
+    if isinstance(value, (list, tuple)):
+        if not value:
+            raise ParamsError(f"{key} must not be an empty list (rcl cannot type it)", key)
+        kinds = {"number" if _is_number(v) else type(v).__name__ for v in value}
+        if len(kinds) != 1 or kinds - {"number", "str", "bool"}:
+            raise ParamsError(f"{key} must be a list of numbers, strings or booleans, not mixed", key)
+        return "[" + ", ".join(_format_scalar(key, v) for v in value) + "]"
+    return _format_scalar(key, value, as_int=key in INT_KEYS)
+
+
+def dump_params_yaml(flat: Mapping[str, Any], header_comment: str = "", node_name: str = "estimator") -> str:
+    """Render flat dotted keys as a nested ``node_name: ros__parameters:`` YAML document."""
+    tree: dict[str, Any] = {}
+    for key, value in flat.items():
+        node = tree
+        *parents, leaf = key.split(".")
+        for part in parents:
+            child = node.setdefault(part, {})
+            if not isinstance(child, dict):
+                raise ParamsError(f"{key} clashes with the parameter {part}", key)
+            node = child
+        if leaf in node:
+            raise ParamsError(f"{key} clashes with a parameter namespace of the same name", key)
+        node[leaf] = _format_value(key, value)
+    lines = [f"# {line}".rstrip() for line in header_comment.splitlines()]
+    lines += [f"{node_name}:", "  ros__parameters:"]
+
+    def emit(node: dict[str, Any], indent: int) -> None:
+        for name, value in node.items():
+            if isinstance(value, dict):
+                lines.append(f"{' ' * indent}{name}:")
+                emit(value, indent + 2)
+            else:
+                lines.append(f"{' ' * indent}{name}: {value}")
+
+    emit(tree, 4)
+    return "\n".join(lines) + "\n"
+
+
+def write_params_yaml(
+    path: str | Path, flat: Mapping[str, Any], header_comment: str, node_name: str = "estimator"
+) -> None:
+    """Validate ``flat`` and write it atomically (temp file in the same directory, then rename).
+
+    Every number is written as a float except integer parameters (``ekf.max_gated``); lists are in
+    flow style. On any failure the temp file is removed and the target is left untouched.
+    """
+    flat_to_params(flat)
+    text = dump_params_yaml(flat, header_comment, node_name)
+    target = Path(path)
+    mode = target.stat().st_mode & 0o777 if target.is_file() else 0o644
+    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as handle:
+            os.fchmod(handle.fileno(), mode)
+            handle.write(text)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
