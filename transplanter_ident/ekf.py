@@ -122,6 +122,53 @@ def _write_outputs(x, p, settings, status, r_model, vy_model, out):  # noqa: ANN
 
 
 @numba.njit(cache=True)
+def predict(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):  # noqa: ANN001, ANN201
+    """Prediction of eq. (12) in place: x <- f(x, u), model <- f(model, u); F = df/dx in ws[3, :n, :n].
+
+    ``steering`` is the interval mean and ``steering_rate`` its slope: ``exact`` drives the ramp
+    that starts at mean - rate dt / 2, ``euler`` holds the mean. Uses ws[0:12] (discretize),
+    ws[3] (F), ws[15]; ws[12:15] are left alone.
+    """
+    n = x.shape[0]
+    with_heading = settings[S_HEADING] > 0.5
+    nd = 3 if with_heading else 2
+    nf, nr = n - 2, n - 1
+    if settings[S_LOG] > 0.5:
+        cf, cr = math.exp(x[nf]), math.exp(x[nr])
+        dcf, dcr = cf, cr
+    else:
+        cf, cr = x[nf], x[nr]
+        dcf, dcr = 1.0, 1.0
+    method = int(settings[S_METHOD])
+    discretize(cf, cr, dcf, dcr, speed, dt, vehicle, with_heading, method, ws)
+    level = steering if method == EULER else steering - 0.5 * dt * steering_rate
+    e, de_f, de_r = ws[0], ws[1], ws[2]
+    jac = ws[3]
+    new = ws[15]
+    for i in range(n):
+        for j in range(n):
+            jac[i, j] = 1.0 if i == j else 0.0
+    for i in range(nd):
+        acc = e[i, nd] * level + e[i, nd + 1] * steering_rate
+        acc_f = de_f[i, nd] * level + de_f[i, nd + 1] * steering_rate
+        acc_r = de_r[i, nd] * level + de_r[i, nd + 1] * steering_rate
+        acc_m = acc
+        for j in range(nd):
+            acc += e[i, j] * x[j]
+            acc_f += de_f[i, j] * x[j]
+            acc_r += de_r[i, j] * x[j]
+            acc_m += e[i, j] * model[j]
+            jac[i, j] = e[i, j]
+        jac[i, nf] = acc_f
+        jac[i, nr] = acc_r
+        new[0, i] = acc
+        new[1, i] = acc_m
+    for i in range(nd):
+        x[i] = new[0, i]
+        model[i] = new[1, i]
+
+
+@numba.njit(cache=True)
 def ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,  # noqa: ANN001, ANN201
              steering_rate, vy, psi, yaw_rate, ws, out):
     """Process one epoch in place; return the StepStatus code. ``out`` receives one output row.
@@ -134,7 +181,6 @@ def ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steerin
     """
     n = x.shape[0]
     with_heading = settings[S_HEADING] > 0.5
-    nd = 3 if with_heading else 2
     for k in range(N_OUTPUTS):
         out[k] = 0.0
     if not (_finite(t) and _finite(speed) and _finite(steering) and _finite(steering_rate) and _finite(vy)
@@ -171,41 +217,10 @@ def ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steerin
         backup_m[0, i] = model[i]
 
     # prediction, eq. 12 first two lines
-    nf, nr = n - 2, n - 1
-    if settings[S_LOG] > 0.5:
-        cf, cr = math.exp(x[nf]), math.exp(x[nr])
-        dcf, dcr = cf, cr
-    else:
-        cf, cr = x[nf], x[nr]
-        dcf, dcr = 1.0, 1.0
-    method = int(settings[S_METHOD])
-    discretize(cf, cr, dcf, dcr, speed, dt, vehicle, with_heading, method, ws)
-    level = steering if method == EULER else steering - 0.5 * dt * steering_rate
-    e, de_f, de_r = ws[0], ws[1], ws[2]
-    jac, tmp = ws[3], ws[4]
-    new = ws[15]
-    for i in range(n):
-        for j in range(n):
-            jac[i, j] = 1.0 if i == j else 0.0
-    for i in range(nd):
-        acc = e[i, nd] * level + e[i, nd + 1] * steering_rate
-        acc_f = de_f[i, nd] * level + de_f[i, nd + 1] * steering_rate
-        acc_r = de_r[i, nd] * level + de_r[i, nd + 1] * steering_rate
-        acc_m = acc
-        for j in range(nd):
-            acc += e[i, j] * x[j]
-            acc_f += de_f[i, j] * x[j]
-            acc_r += de_r[i, j] * x[j]
-            acc_m += e[i, j] * model[j]
-            jac[i, j] = e[i, j]
-        jac[i, nf] = acc_f
-        jac[i, nr] = acc_r
-        new[0, i] = acc
-        new[1, i] = acc_m
     psi_model_before = model[2]
-    for i in range(nd):
-        x[i] = new[0, i]
-        model[i] = new[1, i]
+    predict(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
+    jac, tmp = ws[3], ws[4]
+    nf, nr = n - 2, n - 1
     r_model = (model[2] - psi_model_before) / dt if with_heading else model[1]
     vy_model = model[0]
     # P = F P F^T + Q

@@ -189,6 +189,8 @@ class EpochAssembler:
             return self._reject("velocity", stamp, "non-finite value")
         if self._stale_gnss(stamp):
             return self._reject("velocity", stamp, "stamp not after the previous epoch")
+        if self._velocity and stamp <= self._velocity[-1][0]:
+            return self._reject("velocity", stamp, "stamp not after the previous velocity sample")
         self._velocity.append((stamp, *velocity_to_enu(first, second, self.settings.velocity_frame)))
         return self._match()
 
@@ -198,6 +200,8 @@ class EpochAssembler:
             return self._reject("heading", stamp, "non-finite value")
         if self._stale_gnss(stamp):
             return self._reject("heading", stamp, "stamp not after the previous epoch")
+        if self._heading and stamp <= self._heading[-1][0]:
+            return self._reject("heading", stamp, "stamp not after the previous heading sample")
         self._heading.append((stamp, heading_to_enu_yaw(heading, self.settings.heading_frame)))
         return self._match()
 

@@ -1,0 +1,69 @@
+"""Shared helpers of the filter tests: simulator output -> time-ordered samples -> epochs."""
+
+from __future__ import annotations
+
+import math
+
+from transplanter_ident.measurements import AssemblerSettings, Epoch, EpochArrays, EpochAssembler, assemble
+from transplanter_ident.parameters import EstimatorConfig, FilterOptions, NoiseParams, VehicleParams
+from transplanter_ident.sim import SensorNoise, SimConfig, SimResult, simulate
+
+Sample = tuple[str, float, tuple[float, ...]]
+
+# at equal stamps: steering first (it belongs to the interval the GNSS epoch closes), then velocity, heading
+_TOPIC_ORDER = {"steering": 0, "velocity": 1, "heading": 2}
+
+NO_NOISE = SensorNoise(velocity=0.0, heading=0.0, steering=0.0)
+
+# The paper's Table 1 vehicle: m = 720 kg, lf = 0.7 m, lr = 0.4 m, Iz = 201.6 kg m^2, steering limit 20 deg.
+TABLE1_VEHICLE = VehicleParams(mass=720.0, lf=0.7, lr=0.4, iz=201.6, max_steering=math.radians(20.0))
+
+
+def sim_samples(result: SimResult) -> list[Sample]:
+    """The simulator's sensor streams as (topic, stamp, values) samples in time order."""
+    keyed: list[tuple[float, int, Sample]] = []
+    for t, (east, north), heading in zip(result.gnss_time, result.velocity_enu, result.heading, strict=True):
+        keyed.append((float(t), _TOPIC_ORDER["velocity"], ("velocity", float(t), (float(east), float(north)))))
+        keyed.append((float(t), _TOPIC_ORDER["heading"], ("heading", float(t), (float(heading),))))
+    for t, angle in zip(result.steering_time, result.steering, strict=True):
+        keyed.append((float(t), _TOPIC_ORDER["steering"], ("steering", float(t), (float(angle),))))
+    keyed.sort(key=lambda item: (item[0], item[1]))
+    return [sample for _, _, sample in keyed]
+
+
+def assembler_settings(vehicle: VehicleParams, **overrides: object) -> AssemblerSettings:
+    """AssemblerSettings with the vehicle's lever arm and steering limit."""
+    values = {"antenna_x": vehicle.antenna_x, "antenna_y": vehicle.antenna_y,
+              "max_steering": vehicle.max_steering}
+    values.update(overrides)
+    return AssemblerSettings(**values)
+
+
+def epochs_from_result(result: SimResult, vehicle: VehicleParams | None = None) -> list[Epoch]:
+    """Feed the simulated streams through a fresh EpochAssembler; fails on any rejection."""
+    assembler = EpochAssembler(assembler_settings(vehicle or VehicleParams()))
+    epochs = assemble(assembler, sim_samples(result))
+    rejections = assembler.drain_rejections()
+    assert not rejections, f"clean simulated data was rejected: {rejections[:3]}"
+    return epochs
+
+
+def simulate_epochs(config: SimConfig) -> tuple[SimResult, EpochArrays]:
+    """Simulate and assemble: (truth and samples, the filter's epochs)."""
+    result = simulate(config)
+    return result, EpochArrays(epochs_from_result(result, config.vehicle))
+
+
+def paper_config(vehicle: VehicleParams = TABLE1_VEHICLE) -> EstimatorConfig:
+    """The paper's filter: z = [vy, r], forward Euler, linear stiffness, Cf = Cr = 1000 N/rad to start."""
+    return EstimatorConfig(
+        vehicle=vehicle,
+        options=FilterOptions(discretization="euler", stiffness_state="linear", measurement="yaw_rate"),
+        noise=NoiseParams(
+            process_noise=(1.0e-4, 1.0e-4, 100.0, 100.0),
+            measurement_noise=(4.0e-4, 1.0e-3),
+            initial_stiffness=(1000.0, 1000.0),
+            initial_covariance=(1.0e-2, 1.0e-2, 1.0e6, 1.0e6),
+        ),
+    )
+

@@ -1,0 +1,367 @@
+"""Tests of the joint-state EKF driver code (transplanter_ident.ekf): online = offline, bad numbers, gate, P."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from helpers import paper_config, simulate_epochs
+
+from transplanter_ident.ekf import (
+    N_OUTPUTS,
+    O_CF,
+    O_CR,
+    O_E0,
+    O_E1,
+    O_STATUS,
+    Estimate,
+    FilterArrays,
+    JointEKF,
+    StepStatus,
+    predict,
+    run_sequence,
+    sequence_objective,
+)
+from transplanter_ident.measurements import Epoch, EpochArrays
+from transplanter_ident.parameters import EstimatorConfig, NoiseParams
+from transplanter_ident.sim import SimConfig
+
+TRUE_CF, TRUE_CR = 8000.0, 10000.0
+DEFAULT = EstimatorConfig()
+CONFIGS = {"default": DEFAULT, "paper": paper_config()}
+INJECT = 100  # epoch index (t = 20 s) at which bad input is injected, after the initial convergence
+
+
+@pytest.fixture(scope="module")
+def sequence() -> EpochArrays:
+    """60 s of the standard scenario (2 m/s, +-15 deg sine steer, 5 Hz GNSS, default sensor noise), seed 0."""
+    _, epochs = simulate_epochs(SimConfig(duration=60.0, seed=0))
+    assert len(epochs) == 300
+    return epochs
+
+
+@pytest.fixture(scope="module")
+def clean_rows(sequence) -> np.ndarray:
+    return run_sequence(DEFAULT, sequence)
+
+
+def row(estimate: Estimate) -> np.ndarray:
+    """An Estimate back in the kernel's output-row layout."""
+    values = [int(estimate.status), estimate.lateral_velocity, estimate.yaw_rate,
+              estimate.cornering_stiffness_front, estimate.cornering_stiffness_rear,
+              estimate.cornering_stiffness_front_std, estimate.cornering_stiffness_rear_std,
+              estimate.lateral_velocity_model, estimate.yaw_rate_model, *estimate.innovation,
+              *estimate.innovation_covariance, estimate.normalized_innovation_squared]
+    assert len(values) == N_OUTPUTS
+    return np.array(values, dtype=np.float64)
+
+
+def step_all(ekf: JointEKF, epochs: list[Epoch]) -> np.ndarray:
+    rows = []
+    for epoch in epochs:
+        estimate = ekf.step(epoch)
+        rows.append(row(estimate))
+        assert np.all(np.isfinite(rows[-1])), f"non-finite output at t={epoch.t}: {estimate}"
+        assert np.all(np.isfinite(ekf.state)) and np.all(np.isfinite(ekf.covariance))
+    return np.array(rows)
+
+
+def epoch_list(epochs: EpochArrays) -> list[Epoch]:
+    return [epochs[i] for i in range(len(epochs))]
+
+
+# --------------------------------------------------------------------------- online == offline
+
+
+@pytest.mark.parametrize("name", list(CONFIGS))
+def test_step_by_step_equals_run_sequence(sequence, name):
+    config = CONFIGS[name]
+    offline = run_sequence(config, sequence)
+    online = step_all(JointEKF(config), epoch_list(sequence))
+    np.testing.assert_array_equal(online, offline)
+    assert np.all(np.isfinite(offline))
+    statuses = np.bincount(offline[:, O_STATUS].astype(int), minlength=len(StepStatus))
+    assert statuses[StepStatus.INITIALISED] == 1
+    assert statuses[StepStatus.UPDATED] >= 290
+
+
+def test_objective_is_the_mean_absolute_innovation(sequence, clean_rows):
+    """sequence_objective('mae') is eq. (21) over the epochs with a prediction (UPDATED or GATED)."""
+    predicted = clean_rows[:, O_STATUS] <= StepStatus.GATED
+    expected = np.mean(np.abs(clean_rows[predicted, O_E0]) + np.abs(clean_rows[predicted, O_E1]))
+    assert sequence_objective(DEFAULT, sequence, "mae") == pytest.approx(expected, rel=1e-12)
+    assert math.isfinite(sequence_objective(DEFAULT, sequence, "nll"))
+
+
+# --------------------------------------------------------------------------- bad numbers (DESIGN.md section 6)
+
+
+FILTER_FIELDS = ("t", "lateral_velocity", "heading", "yaw_rate", "steering", "steering_rate", "speed")
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf])
+@pytest.mark.parametrize("field", FILTER_FIELDS)
+def test_non_finite_epoch_is_rejected_and_changes_nothing(sequence, clean_rows, field, value):
+    """REJECTED_INVALID, state untouched, outputs finite; the rest of the run is bit-identical to the clean run."""
+    epochs = epoch_list(sequence)
+    ekf = JointEKF(DEFAULT)
+    step_all(ekf, epochs[:INJECT])
+    state, covariance = ekf.state.copy(), ekf.covariance.copy()
+    estimate = ekf.step(dataclasses.replace(epochs[INJECT], **{field: value}))
+    assert estimate.status is StepStatus.REJECTED_INVALID
+    assert not estimate.status.stiffness_updated
+    assert np.all(np.isfinite(row(estimate)))
+    np.testing.assert_array_equal(ekf.state, state)
+    np.testing.assert_array_equal(ekf.covariance, covariance)
+    # the published stiffness is the last one
+    assert estimate.cornering_stiffness_front == clean_rows[INJECT - 1, O_CF]
+    np.testing.assert_array_equal(step_all(ekf, epochs[INJECT:]), clean_rows[INJECT:])
+
+
+def test_non_finite_longitudinal_velocity_is_not_used_by_the_filter(sequence, clean_rows):
+    """The filter's input is the interval-mean ``speed``; vx at t_k only travels with the epoch."""
+    epochs = epoch_list(sequence)
+    ekf = JointEKF(DEFAULT)
+    step_all(ekf, epochs[:INJECT])
+    estimate = ekf.step(dataclasses.replace(epochs[INJECT], longitudinal_velocity=math.nan))
+    np.testing.assert_array_equal(row(estimate), clean_rows[INJECT])
+
+
+@pytest.mark.parametrize("kind", ["reversed", "duplicate"])
+def test_stale_stamp_is_rejected_and_changes_nothing(sequence, clean_rows, kind):
+    epochs = epoch_list(sequence)
+    ekf = JointEKF(DEFAULT)
+    step_all(ekf, epochs[:INJECT])
+    state = ekf.state.copy()
+    previous_t = epochs[INJECT - 1].t
+    stamp = previous_t - 0.1 if kind == "reversed" else previous_t
+    estimate = ekf.step(dataclasses.replace(epochs[INJECT], t=stamp))
+    assert estimate.status is StepStatus.REJECTED_STAMP
+    assert np.all(np.isfinite(row(estimate)))
+    np.testing.assert_array_equal(ekf.state, state)
+    np.testing.assert_array_equal(step_all(ekf, epochs[INJECT:]), clean_rows[INJECT:])
+
+
+def assert_recovers(ekf: JointEKF, rest: list[Epoch], clean_rows: np.ndarray) -> None:
+    """After a disturbance the filter carries on updating and ends close to the truth.
+
+    Within 3 % of the truth and 1.5 % of the undisturbed run (whose own final errors are +0.4 % / +0.2 %
+    on this seed).
+    """
+    rows = step_all(ekf, rest)
+    assert np.all(rows[1:, O_STATUS] == StepStatus.UPDATED)
+    final = rows[-1]
+    assert final[O_CF] == pytest.approx(TRUE_CF, rel=0.03)
+    assert final[O_CR] == pytest.approx(TRUE_CR, rel=0.03)
+    assert final[O_CF] == pytest.approx(clean_rows[-1, O_CF], rel=0.015)
+    assert final[O_CR] == pytest.approx(clean_rows[-1, O_CR], rel=0.015)
+
+
+@pytest.mark.parametrize(("speed", "status"), [(0.1, StepStatus.LOW_SPEED), (0.0, StepStatus.LOW_SPEED),
+                                               (-0.1, StepStatus.LOW_SPEED), (-1.0, StepStatus.REVERSING),
+                                               (-0.3, StepStatus.REVERSING)])
+def test_slow_or_reversing_epoch_holds_the_stiffness(sequence, clean_rows, speed, status):
+    """|vx| < min_speed (0.3 m/s): LOW_SPEED; vx <= -min_speed: REVERSING.
+
+    Motion states follow the measurement, stiffness and its variance are held, and the filter continues.
+    """
+    epochs = epoch_list(sequence)
+    ekf = JointEKF(DEFAULT)
+    step_all(ekf, epochs[:INJECT])
+    stiffness, variance = ekf.state[-2:].copy(), np.diag(ekf.covariance)[-2:].copy()
+    slow = dataclasses.replace(epochs[INJECT], speed=speed)
+    estimate = ekf.step(slow)
+    assert estimate.status is status
+    assert np.all(np.isfinite(row(estimate)))
+    np.testing.assert_array_equal(ekf.state[-2:], stiffness)
+    np.testing.assert_array_equal(np.diag(ekf.covariance)[-2:], variance)
+    assert ekf.state[0] == slow.lateral_velocity and ekf.state[1] == slow.yaw_rate and ekf.state[2] == slow.heading
+    assert_recovers(ekf, epochs[INJECT + 1:], clean_rows)
+
+
+def test_gap_reinitialises_the_motion_states(sequence, clean_rows):
+    """No epoch for 3 s (> max_interval = 2 s): GAP, stiffness held, then the filter continues."""
+    epochs = epoch_list(sequence)
+    ekf = JointEKF(DEFAULT)
+    step_all(ekf, epochs[:INJECT])
+    stiffness = ekf.state[-2:].copy()
+    after_gap = INJECT + 15  # 3 s later at 5 Hz
+    assert epochs[after_gap].t - epochs[INJECT - 1].t > DEFAULT.options.max_interval
+    estimate = ekf.step(epochs[after_gap])
+    assert estimate.status is StepStatus.GAP
+    np.testing.assert_array_equal(ekf.state[-2:], stiffness)
+    assert ekf.state[0] == epochs[after_gap].lateral_velocity
+    assert_recovers(ekf, epochs[after_gap + 1:], clean_rows)
+
+
+def test_run_sequence_handles_bad_epochs_like_step(sequence):
+    """A sequence salted with every kind of bad epoch: the kernel loop gives the same rows as stepping."""
+    epochs = epoch_list(sequence)
+    salted = list(epochs[:50])
+    salted.append(dataclasses.replace(epochs[50], lateral_velocity=math.nan))
+    salted.append(dataclasses.replace(epochs[50], heading=math.inf))
+    salted.append(dataclasses.replace(epochs[50], t=epochs[49].t))
+    salted.append(dataclasses.replace(epochs[50], speed=-1.0))
+    salted.append(dataclasses.replace(epochs[51], speed=0.05))
+    salted.extend(epochs[52:80])
+    salted.extend(epochs[95:])  # a 3 s gap
+    rows = run_sequence(DEFAULT, EpochArrays(salted))
+    np.testing.assert_array_equal(step_all(JointEKF(DEFAULT), salted), rows)
+    assert np.all(np.isfinite(rows))
+    assert list(rows[50:56, O_STATUS]) == [StepStatus.REJECTED_INVALID, StepStatus.REJECTED_INVALID,
+                                           StepStatus.REJECTED_STAMP, StepStatus.REVERSING, StepStatus.LOW_SPEED,
+                                           StepStatus.UPDATED]
+    assert rows[83, O_STATUS] == StepStatus.GAP  # epochs[95] after epochs[79]: 3.2 s
+
+
+# --------------------------------------------------------------------------- innovation gate
+
+
+def test_outlier_is_gated_and_does_not_move_the_stiffness(sequence, clean_rows):
+    """A 1 m/s vy outlier (50 sigma of R) is GATED: the stiffness (and its output) stays bit-identical."""
+    epochs = epoch_list(sequence)
+    ekf = JointEKF(DEFAULT)
+    step_all(ekf, epochs[:INJECT])
+    stiffness = ekf.state[-2:].copy()
+    estimate = ekf.step(dataclasses.replace(epochs[INJECT], lateral_velocity=epochs[INJECT].lateral_velocity + 1.0))
+    assert estimate.status is StepStatus.GATED
+    assert estimate.normalized_innovation_squared > DEFAULT.options.gate_threshold
+    np.testing.assert_array_equal(ekf.state[-2:], stiffness)
+    assert estimate.cornering_stiffness_front == clean_rows[INJECT - 1, O_CF]
+    assert estimate.cornering_stiffness_rear == clean_rows[INJECT - 1, O_CR]
+    assert_recovers(ekf, epochs[INJECT + 1:], clean_rows)
+
+
+def test_gate_accepts_after_max_gated_consecutive_outliers(sequence):
+    epochs = epoch_list(sequence)
+    max_gated = DEFAULT.options.max_gated
+    ekf = JointEKF(DEFAULT)
+    step_all(ekf, epochs[:INJECT])
+    statuses = []
+    for k in range(INJECT, INJECT + max_gated + 1):
+        statuses.append(ekf.step(dataclasses.replace(epochs[k], lateral_velocity=epochs[k].lateral_velocity + 1.0))
+                        .status)
+    assert statuses == [StepStatus.GATED] * max_gated + [StepStatus.UPDATED]
+    # a good epoch in between restarts the count
+    ekf = JointEKF(DEFAULT)
+    step_all(ekf, epochs[:INJECT])
+    statuses = []
+    for k in range(INJECT, INJECT + 2 * max_gated + 1):
+        epoch = epochs[k]
+        if k != INJECT + max_gated - 1:
+            epoch = dataclasses.replace(epoch, lateral_velocity=epoch.lateral_velocity + 1.0)
+        statuses.append(ekf.step(epoch).status)
+    assert statuses[: max_gated - 1] == [StepStatus.GATED] * (max_gated - 1)
+    assert statuses[max_gated - 1] is StepStatus.UPDATED
+    assert statuses[max_gated:] == [StepStatus.GATED] * max_gated + [StepStatus.UPDATED]
+
+
+# --------------------------------------------------------------------------- the update itself
+
+
+@pytest.mark.parametrize("name", list(CONFIGS))
+def test_update_is_the_textbook_kalman_update(sequence, name):
+    """One step = P- = F P F^T + Q; K = P- H^T S^-1; x+ = x- + K (z - H x-); P+ = (I - K H) P- (rel 1e-9).
+
+    F and x- come from ekf.predict (tested against finite differences in test_model.py); the rest is
+    numpy. This checks eq. (12) and the Joseph form (including its K R K^T term) in the kernel.
+    """
+    config = CONFIGS[name]
+    arrays = FilterArrays.from_config(config)
+    heading = config.options.measurement == "heading"
+    epochs = epoch_list(sequence)
+    ekf = JointEKF(config)
+    step_all(ekf, epochs[:INJECT])
+    x, p = ekf.state.copy(), ekf.covariance.copy()
+    epoch = epochs[INJECT]
+    x_pred, model, ws = x.copy(), np.zeros(3), np.zeros((16, 5, 5))
+    predict(x_pred, model, arrays.vehicle, arrays.settings, epoch.t - epochs[INJECT - 1].t, epoch.speed,
+            epoch.steering, epoch.steering_rate, ws)
+    n = len(x)
+    jac = ws[3, :n, :n].copy()
+    p_pred = jac @ p @ jac.T + np.diag(arrays.process_noise)
+    h = np.zeros((2, n))
+    h[0, 0] = 1.0
+    h[1, 2 if heading else 1] = 1.0
+    z = np.array([epoch.lateral_velocity, epoch.heading if heading else epoch.yaw_rate])
+    innovation = z - h @ x_pred
+    s = h @ p_pred @ h.T + np.diag(arrays.measurement_noise)
+    gain = p_pred @ h.T @ np.linalg.inv(s)
+    x_new = x_pred + gain @ innovation
+    p_new = (np.eye(n) - gain @ h) @ p_pred
+    estimate = ekf.step(epoch)
+    assert estimate.status is StepStatus.UPDATED
+    np.testing.assert_allclose(estimate.innovation, innovation, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(estimate.innovation_covariance, [s[0, 0], s[0, 1], s[1, 1]], rtol=1e-9)
+    assert estimate.normalized_innovation_squared == pytest.approx(innovation @ np.linalg.solve(s, innovation),
+                                                                   rel=1e-9)
+    np.testing.assert_allclose(ekf.state, x_new, rtol=1e-9, atol=1e-12)
+    scale = np.sqrt(np.outer(np.diag(p_new), np.diag(p_new)))
+    np.testing.assert_allclose(ekf.covariance / scale, p_new / scale, rtol=0.0, atol=1e-9)
+
+
+# --------------------------------------------------------------------------- covariance
+
+
+@pytest.mark.parametrize("name", list(CONFIGS))
+def test_covariance_stays_symmetric_positive_semidefinite(name):
+    """120 s, step by step: P == P^T exactly and min eig(P) >= -1e-12 * max eig(P) after every epoch."""
+    _, epochs = simulate_epochs(SimConfig(duration=120.0, seed=3))
+    ekf = JointEKF(CONFIGS[name])
+    for epoch in epoch_list(epochs):
+        ekf.step(epoch)
+        p = ekf.covariance
+        np.testing.assert_array_equal(p, p.T)
+        eig = np.linalg.eigvalsh(p)
+        assert eig[0] >= -1e-12 * eig[-1], f"t={epoch.t}: eigenvalues {eig}"
+        assert np.all(np.diag(p) > 0.0)
+
+
+# --------------------------------------------------------------------------- run-time changes
+
+
+def test_set_noise_keeps_the_state_and_changes_q_and_r(sequence):
+    epochs = epoch_list(sequence)
+    base = DEFAULT.noise
+    new_r = dataclasses.replace(base, measurement_noise=(9.0e-4, 4.0e-5))
+    new_q = dataclasses.replace(base, process_noise=(4.0e-4, 3.0e-4, 1.0e-6, 1.0e-6))
+    for noise in (new_r, new_q):
+        changed, reference = JointEKF(DEFAULT), JointEKF(DEFAULT)
+        step_all(changed, epochs[:INJECT])
+        step_all(reference, epochs[:INJECT])
+        changed.set_noise(noise)
+        assert changed.config.noise == noise
+        np.testing.assert_array_equal(changed.state, reference.state)
+        np.testing.assert_array_equal(changed.covariance, reference.covariance)
+        a, b = changed.step(epochs[INJECT]), reference.step(epochs[INJECT])
+        assert a.status is b.status is StepStatus.UPDATED
+        # S = F P F^T + Q + R on the measured states (vy, psi): the difference is exactly the change
+        (s00_a, s01_a, s11_a), (s00_b, s01_b, s11_b) = a.innovation_covariance, b.innovation_covariance
+        d_q = np.array(noise.process_noise) - np.array(base.process_noise)
+        d_r = np.array(noise.measurement_noise) - np.array(base.measurement_noise)
+        assert s00_a - s00_b == pytest.approx(d_q[0] + d_r[0], rel=1e-9, abs=1e-15)
+        assert s11_a - s11_b == pytest.approx(d_r[1], rel=1e-9, abs=1e-15)  # heading's Q is unchanged
+        assert s01_a == pytest.approx(s01_b, rel=1e-9, abs=1e-15)
+        assert a.cornering_stiffness_front != b.cornering_stiffness_front
+
+
+def test_reset_restores_the_initial_state(sequence):
+    epochs = epoch_list(sequence)
+    fresh = JointEKF(DEFAULT)
+    initial_state, initial_covariance = fresh.state.copy(), fresh.covariance.copy()
+    assert initial_state[-2:] == pytest.approx(np.log(DEFAULT.noise.initial_stiffness), rel=1e-15)
+    first = step_all(fresh, epochs[:60])
+    ekf = JointEKF(DEFAULT)
+    step_all(ekf, epochs[:INJECT])
+    ekf.reset()
+    np.testing.assert_array_equal(ekf.state, initial_state)
+    np.testing.assert_array_equal(ekf.covariance, initial_covariance)
+    # the whole memory is reset: the next epoch initialises, and the run repeats the fresh one
+    np.testing.assert_array_equal(step_all(ekf, epochs[:60]), first)
+    # after set_noise, reset starts from the new initial covariance
+    noise = NoiseParams(initial_covariance=(1.0e-2, 1.0e-2, 1.0, 2.0))
+    ekf.set_noise(noise)
+    ekf.reset()
+    assert np.diag(ekf.covariance)[-2:] == pytest.approx([1.0, 2.0])
