@@ -16,6 +16,7 @@ from transplanter_ident.ekf import (
     O_E0,
     O_E1,
     O_STATUS,
+    W_F,
     Estimate,
     FilterArrays,
     JointEKF,
@@ -25,6 +26,7 @@ from transplanter_ident.ekf import (
     sequence_objective,
 )
 from transplanter_ident.measurements import Epoch, EpochArrays
+from transplanter_ident.model import work_buffer
 from transplanter_ident.parameters import EstimatorConfig, NoiseParams
 from transplanter_ident.sim import SimConfig
 
@@ -276,11 +278,11 @@ def test_update_is_the_textbook_kalman_update(sequence, name):
     step_all(ekf, epochs[:INJECT])
     x, p = ekf.state.copy(), ekf.covariance.copy()
     epoch = epochs[INJECT]
-    x_pred, model, ws = x.copy(), np.zeros(3), np.zeros((16, 5, 5))
+    x_pred, model, ws = x.copy(), np.zeros(3), work_buffer()
     predict(x_pred, model, arrays.vehicle, arrays.settings, epoch.t - epochs[INJECT - 1].t, epoch.speed,
             epoch.steering, epoch.steering_rate, ws)
     n = len(x)
-    jac = ws[3, :n, :n].copy()
+    jac = ws[W_F, :n, :n].copy()
     p_pred = jac @ p @ jac.T + np.diag(arrays.process_noise)
     h = np.zeros((2, n))
     h[0, 0] = 1.0

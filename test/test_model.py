@@ -10,14 +10,21 @@ import pytest
 import scipy.linalg
 from scipy.integrate import solve_ivp
 
-from transplanter_ident.ekf import FilterArrays, predict
+from transplanter_ident.ekf import W_F, FilterArrays, predict
 from transplanter_ident.model import (
     EXACT,
+    W_DE_F,
+    W_DE_R,
+    W_DM_F,
+    W_DM_R,
+    W_E,
+    W_M,
     continuous_matrix,
     discrete_matrices,
     discretize,
     steady_state_yaw_rate,
     vehicle_array,
+    work_buffer,
 )
 from transplanter_ident.parameters import EstimatorConfig, FilterOptions, VehicleParams
 
@@ -38,10 +45,10 @@ def eq4(vehicle: VehicleParams, cf: float, cr: float, vx: float) -> tuple[np.nda
 
 def augmented(cf: float, cr: float, vx: float, with_heading: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """M, dM/dCf, dM/dCr from continuous_matrix, cut to their size nd + 2."""
-    m, dm_f, dm_r = np.zeros((5, 5)), np.zeros((5, 5)), np.zeros((5, 5))
-    continuous_matrix(cf, cr, vx, vehicle_array(VEHICLE), with_heading, m, dm_f, dm_r)
+    ws = work_buffer()
+    continuous_matrix(cf, cr, vx, vehicle_array(VEHICLE), with_heading, ws)
     size = (3 if with_heading else 2) + 2
-    return m[:size, :size], dm_f[:size, :size], dm_r[:size, :size]
+    return ws[W_M, :size, :size].copy(), ws[W_DM_F, :size, :size].copy(), ws[W_DM_R, :size, :size].copy()
 
 
 def settings_for(discretization: str, stiffness: str, measurement: str) -> FilterArrays:
@@ -55,10 +62,10 @@ def run_predict(arrays: FilterArrays, x: np.ndarray, dt: float, speed: float, st
     x_new = x.copy()
     model = np.zeros(3)
     model[: len(x) - 2] = x[: len(x) - 2]
-    ws = np.zeros((16, 5, 5))
+    ws = work_buffer()
     predict(x_new, model, arrays.vehicle, arrays.settings, dt, speed, steering, steering_rate, ws)
     n = len(x)
-    return x_new, ws[3, :n, :n].copy(), model
+    return x_new, ws[W_F, :n, :n].copy(), model
 
 
 # --------------------------------------------------------------------------- continuous model
@@ -186,14 +193,14 @@ def test_exact_discretisation_matches_scipy_expm():
         vx, dt = rng.uniform(0.5, 3.0), rng.uniform(0.01, 0.5)
         for with_heading in (False, True):
             nd = 3 if with_heading else 2
-            ws = np.zeros((12, 5, 5))
+            ws = work_buffer()
             discretize(cf, cr, 1.0, 1.0, vx, dt, vehicle, with_heading, EXACT, ws)
             m, dm_f, dm_r = augmented(cf, cr, vx, with_heading)
             expected, d_front = scipy.linalg.expm_frechet(m * dt, dm_f * dt)
             d_rear = scipy.linalg.expm_frechet(m * dt, dm_r * dt, compute_expm=False)
             reference = scipy.linalg.expm(m * dt)  # two scipy routines agree (normwise)
             assert np.max(np.abs(expected - reference)) <= 1e-13 * np.max(np.abs(reference))
-            for got, want in ((ws[0], expected), (ws[1], d_front), (ws[2], d_rear)):
+            for got, want in ((ws[W_E], expected), (ws[W_DE_F], d_front), (ws[W_DE_R], d_rear)):
                 got, want = got[:nd, : nd + 2], want[:nd]
                 err = np.max(np.abs(got - want)) / np.max(np.abs(want))
                 assert err < 1e-12, f"Cf={cf:.0f} Cr={cr:.0f} vx={vx:.2f} dt={dt:.3f}: relative error {err:.2e}"

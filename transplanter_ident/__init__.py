@@ -1,3 +1,33 @@
 """transplanter_ident: online IPSO-EKF identification of a rice transplanter's cornering stiffness."""
 
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
 __version__ = "0.1.0"
+
+_COMPILED_MODULES = ("model.py", "ekf.py", "tuning.py")
+
+
+def _numba_cache_dir() -> Path:
+    """A numba cache folder keyed by the compiled sources.
+
+    numba invalidates a cached function only when its own file changes, but ekf.py's kernels
+    inline model.py's: keying the folder by all compiled sources keeps the cache honest.
+    """
+    here = Path(__file__).resolve().parent
+    digest = hashlib.sha256()
+    for name in _COMPILED_MODULES:
+        path = here / name
+        if path.exists():
+            digest.update(path.read_bytes())
+    root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return root / "transplanter_ident" / f"numba-{digest.hexdigest()[:16]}"
+
+
+if "NUMBA_CACHE_DIR" not in os.environ:
+    import numba
+
+    numba.config.CACHE_DIR = str(_numba_cache_dir())

@@ -25,7 +25,18 @@ import numba
 import numpy as np
 
 from .measurements import Epoch, EpochArrays
-from .model import EULER, EXACT, discretize, vehicle_array
+from .model import (
+    EULER,
+    EXACT,
+    W_DE_F,
+    W_DE_R,
+    W_E,
+    WORK_SIZE,
+    WORK_SLOTS,
+    discretize,
+    vehicle_array,
+    work_buffer,
+)
 from .parameters import EstimatorConfig, NoiseParams
 
 # settings vector layout
@@ -79,93 +90,251 @@ def _wrap(angle):  # noqa: ANN001, ANN202
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
-@numba.njit(cache=True)
-def _reset_motion(x, p, model, settings, vy, psi, yaw_rate):  # noqa: ANN001, ANN202
-    """Take the motion states from the measurement; keep the stiffness and its variance."""
-    n = x.shape[0]
-    nd = 3 if settings[S_HEADING] > 0.5 else 2
-    x[0] = vy
-    x[1] = yaw_rate
-    model[0] = vy
-    model[1] = yaw_rate
-    model[2] = psi
-    if nd == 3:
-        x[2] = psi
-    for i in range(nd):
-        for j in range(n):
-            p[i, j] = 0.0
-            p[j, i] = 0.0
-    p[0, 0] = settings[S_P0_VY]
-    p[1, 1] = settings[S_P0_R]
-    if nd == 3:
-        p[2, 2] = settings[S_P0_PSI]
+# work-buffer slots of this module (model.py uses 0..11)
+W_F, W_TMP, W_GAIN, W_IKH, W_BACKUP_P, W_VEC = 12, 13, 14, 15, 16, 17
+V_BACKUP_X, V_BACKUP_MODEL, V_NEW_X, V_NEW_MODEL = 0, 1, 2, 3  # rows of ws[W_VEC]
 
 
-@numba.njit(cache=True)
-def _write_outputs(x, p, settings, status, r_model, vy_model, out):  # noqa: ANN001, ANN202
-    n = x.shape[0]
-    out[O_STATUS] = status
-    out[O_VY] = x[0]
-    out[O_R] = x[1]
-    for k in range(2):
-        theta = x[n - 2 + k]
-        var = max(p[n - 2 + k, n - 2 + k], 0.0)
+def _make_kernels(n):  # noqa: ANN001, ANN202
+    """Compile predict/update/step for n states (5: heading mode, 4: yaw_rate mode).
+
+    The sizes are compile-time constants, so the small loops unroll; all scratch lives in one
+    work buffer indexed by slot (no per-step array views or allocations).
+    """
+    nd = n - 2
+    heading = n == 5
+    h1 = 2 if heading else 1  # second measured state: psi or r
+    nf, nr = n - 2, n - 1
+
+    @numba.njit(cache=True, inline='always')
+    def reset_motion(x, p, model, settings, vy, psi, yaw_rate):  # noqa: ANN001, ANN202
+        """Take the motion states from the measurement; keep the stiffness and its variance."""
+        x[0] = vy
+        x[1] = yaw_rate
+        model[0] = vy
+        model[1] = yaw_rate
+        model[2] = psi
+        if heading:
+            x[2] = psi
+        for i in range(nd):
+            for j in range(n):
+                p[i, j] = 0.0
+                p[j, i] = 0.0
+        p[0, 0] = settings[S_P0_VY]
+        p[1, 1] = settings[S_P0_R]
+        if heading:
+            p[2, 2] = settings[S_P0_PSI]
+
+    @numba.njit(cache=True, inline='always')
+    def write_outputs(x, p, settings, status, r_model, vy_model, out):  # noqa: ANN001, ANN202
+        out[O_STATUS] = status
+        out[O_VY] = x[0]
+        out[O_R] = x[1]
+        for k in range(2):
+            theta = x[nf + k]
+            var = max(p[nf + k, nf + k], 0.0)
+            if settings[S_LOG] > 0.5:
+                c = math.exp(theta)
+                out[O_CF + k] = c
+                out[O_CF_STD + k] = c * math.sqrt(var)
+            else:
+                out[O_CF + k] = theta
+                out[O_CF_STD + k] = math.sqrt(var)
+        out[O_VY_MODEL] = vy_model
+        out[O_R_MODEL] = r_model
+
+    @numba.njit(cache=True, inline='always')
+    def predict_n(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):  # noqa: ANN001, ANN202
+        """X <- f(x, u), model <- f(model, u); F = df/dx into ws[W_F]."""
         if settings[S_LOG] > 0.5:
-            c = math.exp(theta)
-            out[O_CF + k] = c
-            out[O_CF_STD + k] = c * math.sqrt(var)
+            cf, cr = math.exp(x[nf]), math.exp(x[nr])
+            dcf, dcr = cf, cr
         else:
-            out[O_CF + k] = theta
-            out[O_CF_STD + k] = math.sqrt(var)
-    out[O_VY_MODEL] = vy_model
-    out[O_R_MODEL] = r_model
+            cf, cr = x[nf], x[nr]
+            dcf, dcr = 1.0, 1.0
+        method = int(settings[S_METHOD])
+        discretize(cf, cr, dcf, dcr, speed, dt, vehicle, heading, method, ws)
+        level = steering if method == EULER else steering - 0.5 * dt * steering_rate
+        for i in range(n):
+            for j in range(n):
+                ws[W_F, i, j] = 1.0 if i == j else 0.0
+        for i in range(nd):
+            acc = ws[W_E, i, nd] * level + ws[W_E, i, nd + 1] * steering_rate
+            acc_f = ws[W_DE_F, i, nd] * level + ws[W_DE_F, i, nd + 1] * steering_rate
+            acc_r = ws[W_DE_R, i, nd] * level + ws[W_DE_R, i, nd + 1] * steering_rate
+            acc_m = acc
+            for j in range(nd):
+                acc += ws[W_E, i, j] * x[j]
+                acc_f += ws[W_DE_F, i, j] * x[j]
+                acc_r += ws[W_DE_R, i, j] * x[j]
+                acc_m += ws[W_E, i, j] * model[j]
+                ws[W_F, i, j] = ws[W_E, i, j]
+            ws[W_F, i, nf] = acc_f
+            ws[W_F, i, nr] = acc_r
+            ws[W_VEC, V_NEW_X, i] = acc
+            ws[W_VEC, V_NEW_MODEL, i] = acc_m
+        for i in range(nd):
+            x[i] = ws[W_VEC, V_NEW_X, i]
+            model[i] = ws[W_VEC, V_NEW_MODEL, i]
+
+    @numba.njit(cache=True, inline='always')
+    def propagate_covariance(p, q, ws):  # noqa: ANN001, ANN202
+        """P = F P F^T + Q."""
+        for i in range(n):
+            for j in range(n):
+                acc = 0.0
+                for k in range(n):
+                    acc += ws[W_F, i, k] * p[k, j]
+                ws[W_TMP, i, j] = acc
+        for i in range(n):
+            for j in range(i, n):
+                acc = 0.0
+                for k in range(n):
+                    acc += ws[W_TMP, i, k] * ws[W_F, j, k]
+                p[i, j] = acc
+                p[j, i] = acc
+            p[i, i] += q[i]
+
+    @numba.njit(cache=True, inline='always')
+    def joseph_update(x, p, r_noise, e0, e1, s00, s01, s11, det, ws):  # noqa: ANN001, ANN202
+        """Update: x += K e; P = (I - K H) P (I - K H)^T + K R K^T, H selecting states 0 and h1."""
+        i00, i01, i11 = s11 / det, -s01 / det, s00 / det
+        for i in range(n):
+            ws[W_GAIN, i, 0] = p[i, 0] * i00 + p[i, h1] * i01
+            ws[W_GAIN, i, 1] = p[i, 0] * i01 + p[i, h1] * i11
+        for i in range(n):
+            x[i] += ws[W_GAIN, i, 0] * e0 + ws[W_GAIN, i, 1] * e1
+        for i in range(n):
+            for j in range(n):
+                ws[W_IKH, i, j] = 1.0 if i == j else 0.0
+            ws[W_IKH, i, 0] -= ws[W_GAIN, i, 0]
+            ws[W_IKH, i, h1] -= ws[W_GAIN, i, 1]
+        for i in range(n):
+            for j in range(n):
+                acc = 0.0
+                for k in range(n):
+                    acc += ws[W_IKH, i, k] * p[k, j]
+                ws[W_TMP, i, j] = acc
+        for i in range(n):
+            for j in range(i, n):
+                acc = (ws[W_GAIN, i, 0] * r_noise[0] * ws[W_GAIN, j, 0]
+                       + ws[W_GAIN, i, 1] * r_noise[1] * ws[W_GAIN, j, 1])
+                for k in range(n):
+                    acc += ws[W_TMP, i, k] * ws[W_IKH, j, k]
+                p[i, j] = acc
+                p[j, i] = acc
+
+    @numba.njit(cache=True, inline='always')
+    def healthy(x, p, r_model, vy_model, nis):  # noqa: ANN001, ANN202
+        for i in range(n):
+            if not _finite(x[i]):
+                return False
+            for j in range(n):
+                if not _finite(p[i, j]):
+                    return False
+        return _finite(r_model) and _finite(vy_model) and _finite(nis)
+
+    @numba.njit(cache=True)
+    def step_n(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,  # noqa: ANN001, ANN202
+               steering_rate, vy, psi, yaw_rate, ws, out):
+        for k in range(N_OUTPUTS):
+            out[k] = 0.0
+        if not (_finite(t) and _finite(speed) and _finite(steering) and _finite(steering_rate)
+                and _finite(vy) and _finite(psi) and _finite(yaw_rate)):
+            write_outputs(x, p, settings, 6, model[1], model[0], out)
+            return 6
+        if memo[M_INITIALISED] > 0.5 and t <= memo[M_T_PREV]:
+            write_outputs(x, p, settings, 7, model[1], model[0], out)
+            return 7
+        status = 0
+        if memo[M_INITIALISED] < 0.5:
+            status = 4
+        elif t - memo[M_T_PREV] > settings[S_MAX_INTERVAL]:
+            status = 5
+        elif speed < 0.0 and -speed >= settings[S_MIN_SPEED]:
+            status = 3
+        elif speed < settings[S_MIN_SPEED]:
+            status = 2
+        if status != 0:
+            reset_motion(x, p, model, settings, vy, psi, yaw_rate)
+            memo[M_T_PREV] = t
+            memo[M_INITIALISED] = 1.0
+            memo[M_GATED] = 0.0
+            write_outputs(x, p, settings, status, yaw_rate, vy, out)
+            return status
+
+        dt = t - memo[M_T_PREV]
+        for i in range(n):
+            ws[W_VEC, V_BACKUP_X, i] = x[i]
+            for j in range(n):
+                ws[W_BACKUP_P, i, j] = p[i, j]
+        for i in range(3):
+            ws[W_VEC, V_BACKUP_MODEL, i] = model[i]
+
+        # prediction, eq. 12 first two lines
+        psi_model_before = model[2]
+        predict_n(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
+        r_model = (model[2] - psi_model_before) / dt if heading else model[1]
+        vy_model = model[0]
+        propagate_covariance(p, q, ws)
+
+        # innovation (eq. 21 uses its absolute value) and the gate
+        e0 = vy - x[0]
+        e1 = _wrap(psi - x[2]) if heading else yaw_rate - x[1]
+        s00 = p[0, 0] + r_noise[0]
+        s01 = p[0, h1]
+        s11 = p[h1, h1] + r_noise[1]
+        det = s00 * s11 - s01 * s01
+        nis = (e0 * e0 * s11 - 2.0 * e0 * e1 * s01 + e1 * e1 * s00) / det
+        out[O_E0] = e0
+        out[O_E1] = e1
+        out[O_S00] = s00
+        out[O_S01] = s01
+        out[O_S11] = s11
+        out[O_NIS] = nis
+        if nis > settings[S_GATE] and memo[M_GATED] < settings[S_MAX_GATED]:
+            status = 1
+            memo[M_GATED] += 1.0
+        else:
+            memo[M_GATED] = 0.0
+            joseph_update(x, p, r_noise, e0, e1, s00, s01, s11, det, ws)
+        low, high = settings[S_LOW], settings[S_HIGH]
+        x[nf] = min(max(x[nf], low), high)
+        x[nr] = min(max(x[nr], low), high)
+
+        if not healthy(x, p, r_model, vy_model, nis):  # roll back
+            for i in range(n):
+                x[i] = ws[W_VEC, V_BACKUP_X, i]
+                for j in range(n):
+                    p[i, j] = ws[W_BACKUP_P, i, j]
+            for i in range(3):
+                model[i] = ws[W_VEC, V_BACKUP_MODEL, i]
+            for k in range(N_OUTPUTS):
+                out[k] = 0.0
+            write_outputs(x, p, settings, 8, model[1], model[0], out)
+            return 8
+        memo[M_T_PREV] = t
+        write_outputs(x, p, settings, status, r_model, vy_model, out)
+        return status
+
+    return predict_n, step_n
+
+
+_predict_yaw_rate, _step_yaw_rate = _make_kernels(4)
+_predict_heading, _step_heading = _make_kernels(5)
 
 
 @numba.njit(cache=True)
 def predict(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):  # noqa: ANN001, ANN201
-    """Prediction of eq. (12) in place: x <- f(x, u), model <- f(model, u); F = df/dx in ws[3, :n, :n].
+    """Prediction of eq. (12) in place: x <- f(x, u), model <- f(model, u); F = df/dx in ws[W_F].
 
     ``steering`` is the interval mean and ``steering_rate`` its slope: ``exact`` drives the ramp
-    that starts at mean - rate dt / 2, ``euler`` holds the mean. Uses ws[0:12] (discretize),
-    ws[3] (F), ws[15]; ws[12:15] are left alone.
+    that starts at mean - rate dt / 2, ``euler`` holds the mean. ws: model.work_buffer().
     """
-    n = x.shape[0]
-    with_heading = settings[S_HEADING] > 0.5
-    nd = 3 if with_heading else 2
-    nf, nr = n - 2, n - 1
-    if settings[S_LOG] > 0.5:
-        cf, cr = math.exp(x[nf]), math.exp(x[nr])
-        dcf, dcr = cf, cr
+    if x.shape[0] == 5:
+        _predict_heading(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
     else:
-        cf, cr = x[nf], x[nr]
-        dcf, dcr = 1.0, 1.0
-    method = int(settings[S_METHOD])
-    discretize(cf, cr, dcf, dcr, speed, dt, vehicle, with_heading, method, ws)
-    level = steering if method == EULER else steering - 0.5 * dt * steering_rate
-    e, de_f, de_r = ws[0], ws[1], ws[2]
-    jac = ws[3]
-    new = ws[15]
-    for i in range(n):
-        for j in range(n):
-            jac[i, j] = 1.0 if i == j else 0.0
-    for i in range(nd):
-        acc = e[i, nd] * level + e[i, nd + 1] * steering_rate
-        acc_f = de_f[i, nd] * level + de_f[i, nd + 1] * steering_rate
-        acc_r = de_r[i, nd] * level + de_r[i, nd + 1] * steering_rate
-        acc_m = acc
-        for j in range(nd):
-            acc += e[i, j] * x[j]
-            acc_f += de_f[i, j] * x[j]
-            acc_r += de_r[i, j] * x[j]
-            acc_m += e[i, j] * model[j]
-            jac[i, j] = e[i, j]
-        jac[i, nf] = acc_f
-        jac[i, nr] = acc_r
-        new[0, i] = acc
-        new[1, i] = acc_m
-    for i in range(nd):
-        x[i] = new[0, i]
-        model[i] = new[1, i]
+        _predict_yaw_rate(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
 
 
 @numba.njit(cache=True)
@@ -175,158 +344,28 @@ def ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steerin
 
     x (n,), p (n, n): filter state and covariance; model (3,): open-loop model [vy, r, psi];
     memo (3,): [t_prev, initialised, consecutive gated]; q (n,), r_noise (2,): diag Q and R;
-    ws: (>= 16, 5, 5) work buffer. ``speed`` and ``steering`` are means over the interval
-    that ends at ``t``, ``steering_rate`` the slope of the steering over it; ``yaw_rate`` is
-    the interval-mean yaw rate from heading increments.
+    ws: model.work_buffer(). ``speed`` and ``steering`` are means over the interval that ends
+    at ``t``, ``steering_rate`` the slope of the steering over it; ``yaw_rate`` is the
+    interval-mean yaw rate from heading increments.
     """
-    n = x.shape[0]
-    with_heading = settings[S_HEADING] > 0.5
-    for k in range(N_OUTPUTS):
-        out[k] = 0.0
-    if not (_finite(t) and _finite(speed) and _finite(steering) and _finite(steering_rate) and _finite(vy)
-            and _finite(psi) and _finite(yaw_rate)):
-        _write_outputs(x, p, settings, 6, model[1], model[0], out)
-        return 6
-    if memo[M_INITIALISED] > 0.5 and t <= memo[M_T_PREV]:
-        _write_outputs(x, p, settings, 7, model[1], model[0], out)
-        return 7
-    status = 0
-    if memo[M_INITIALISED] < 0.5:
-        status = 4
-    elif t - memo[M_T_PREV] > settings[S_MAX_INTERVAL]:
-        status = 5
-    elif speed < 0.0 and -speed >= settings[S_MIN_SPEED]:
-        status = 3
-    elif speed < settings[S_MIN_SPEED]:
-        status = 2
-    if status != 0:
-        _reset_motion(x, p, model, settings, vy, psi, yaw_rate)
-        memo[M_T_PREV] = t
-        memo[M_INITIALISED] = 1.0
-        memo[M_GATED] = 0.0
-        _write_outputs(x, p, settings, status, yaw_rate, vy, out)
-        return status
-
-    dt = t - memo[M_T_PREV]
-    backup_x, backup_p, backup_m = ws[12], ws[13], ws[14]
-    for i in range(n):
-        backup_x[0, i] = x[i]
-        for j in range(n):
-            backup_p[i, j] = p[i, j]
-    for i in range(3):
-        backup_m[0, i] = model[i]
-
-    # prediction, eq. 12 first two lines
-    psi_model_before = model[2]
-    predict(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
-    jac, tmp = ws[3], ws[4]
-    nf, nr = n - 2, n - 1
-    r_model = (model[2] - psi_model_before) / dt if with_heading else model[1]
-    vy_model = model[0]
-    # P = F P F^T + Q
-    for i in range(n):
-        for j in range(n):
-            acc = 0.0
-            for k in range(n):
-                acc += jac[i, k] * p[k, j]
-            tmp[i, j] = acc
-    for i in range(n):
-        for j in range(i, n):
-            acc = 0.0
-            for k in range(n):
-                acc += tmp[i, k] * jac[j, k]
-            p[i, j] = acc
-            p[j, i] = acc
-        p[i, i] += q[i]
-
-    # innovation (eq. 21 uses its absolute value)
-    h1 = 2 if with_heading else 1
-    e0 = vy - x[0]
-    e1 = _wrap(psi - x[2]) if with_heading else yaw_rate - x[1]
-    s00 = p[0, 0] + r_noise[0]
-    s01 = p[0, h1]
-    s11 = p[h1, h1] + r_noise[1]
-    det = s00 * s11 - s01 * s01
-    nis = (e0 * e0 * s11 - 2.0 * e0 * e1 * s01 + e1 * e1 * s00) / det
-    out[O_E0] = e0
-    out[O_E1] = e1
-    out[O_S00] = s00
-    out[O_S01] = s01
-    out[O_S11] = s11
-    out[O_NIS] = nis
-    if nis > settings[S_GATE] and memo[M_GATED] < settings[S_MAX_GATED]:
-        status = 1
-        memo[M_GATED] += 1.0
-    else:
-        memo[M_GATED] = 0.0
-        _joseph_update(x, p, r_noise, h1, e0, e1, s00, s01, s11, det, ws)
-    low, high = settings[S_LOW], settings[S_HIGH]
-    x[nf] = min(max(x[nf], low), high)
-    x[nr] = min(max(x[nr], low), high)
-
-    healthy = True
-    for i in range(n):
-        if not _finite(x[i]):
-            healthy = False
-        for j in range(n):
-            if not _finite(p[i, j]):
-                healthy = False
-    if not (healthy and _finite(r_model) and _finite(vy_model) and _finite(nis)):
-        for i in range(n):
-            x[i] = backup_x[0, i]
-            for j in range(n):
-                p[i, j] = backup_p[i, j]
-        for i in range(3):
-            model[i] = backup_m[0, i]
-        for k in range(N_OUTPUTS):
-            out[k] = 0.0
-        _write_outputs(x, p, settings, 8, model[1], model[0], out)
-        return 8
-    memo[M_T_PREV] = t
-    _write_outputs(x, p, settings, status, r_model, vy_model, out)
-    return status
-
-
-@numba.njit(cache=True)
-def _joseph_update(x, p, r_noise, h1, e0, e1, s00, s01, s11, det, ws):  # noqa: ANN001, ANN202
-    """Update: x += K e; P = (I - K H) P (I - K H)^T + K R K^T, H selecting states 0 and h1."""
-    n = x.shape[0]
-    gain, ikh, tmp = ws[5], ws[6], ws[7]
-    i00, i01, i11 = s11 / det, -s01 / det, s00 / det
-    for i in range(n):
-        gain[i, 0] = p[i, 0] * i00 + p[i, h1] * i01
-        gain[i, 1] = p[i, 0] * i01 + p[i, h1] * i11
-    for i in range(n):
-        x[i] += gain[i, 0] * e0 + gain[i, 1] * e1
-    for i in range(n):
-        for j in range(n):
-            ikh[i, j] = 1.0 if i == j else 0.0
-        ikh[i, 0] -= gain[i, 0]
-        ikh[i, h1] -= gain[i, 1]
-    for i in range(n):
-        for j in range(n):
-            acc = 0.0
-            for k in range(n):
-                acc += ikh[i, k] * p[k, j]
-            tmp[i, j] = acc
-    for i in range(n):
-        for j in range(i, n):
-            acc = gain[i, 0] * r_noise[0] * gain[j, 0] + gain[i, 1] * r_noise[1] * gain[j, 1]
-            for k in range(n):
-                acc += tmp[i, k] * ikh[j, k]
-            p[i, j] = acc
-            p[j, i] = acc
+    if x.shape[0] == 5:
+        return _step_heading(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,
+                             steering_rate, vy, psi, yaw_rate, ws, out)
+    return _step_yaw_rate(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,
+                          steering_rate, vy, psi, yaw_rate, ws, out)
 
 
 @numba.njit(cache=True)
 def run_kernel(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs):  # noqa: ANN001, ANN201
     """Run ekf_step over every row of ``epochs``; one output row per epoch."""
-    ws = np.zeros((16, 5, 5))
+    ws = np.zeros((WORK_SLOTS, WORK_SIZE, WORK_SIZE))
+    out = np.zeros(N_OUTPUTS)
     for k in range(epochs.shape[0]):
-        row = epochs[k]
-        ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, row[E_T], row[E_SPEED],
-                 row[E_STEERING], row[E_STEERING_RATE], row[E_VY], row[E_PSI], row[E_YAW_RATE], ws,
-                 outputs[k])
+        ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, epochs[k, E_T], epochs[k, E_SPEED],
+                 epochs[k, E_STEERING], epochs[k, E_STEERING_RATE], epochs[k, E_VY], epochs[k, E_PSI],
+                 epochs[k, E_YAW_RATE], ws, out)
+        for j in range(N_OUTPUTS):
+            outputs[k, j] = out[j]
 
 
 @numba.njit(cache=True)
@@ -336,15 +375,14 @@ def objective_kernel(epochs, x, p, model, memo, vehicle, settings, q, r_noise, k
     Only epochs with a predicted measurement (UPDATED or GATED) count. A diverging filter, or
     one that never predicts, scores DIVERGENCE_PENALTY.
     """
-    ws = np.zeros((16, 5, 5))
+    ws = np.zeros((WORK_SLOTS, WORK_SIZE, WORK_SIZE))
     out = np.zeros(N_OUTPUTS)
     total = 0.0
     count = 0
     for k in range(epochs.shape[0]):
-        row = epochs[k]
-        status = ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, row[E_T], row[E_SPEED],
-                          row[E_STEERING], row[E_STEERING_RATE], row[E_VY], row[E_PSI], row[E_YAW_RATE],
-                          ws, out)
+        status = ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, epochs[k, E_T], epochs[k, E_SPEED],
+                          epochs[k, E_STEERING], epochs[k, E_STEERING_RATE], epochs[k, E_VY], epochs[k, E_PSI],
+                          epochs[k, E_YAW_RATE], ws, out)
         if status == 8:
             return DIVERGENCE_PENALTY
         if status > 1:
@@ -462,7 +500,7 @@ class JointEKF:
     def __init__(self, config: EstimatorConfig) -> None:
         self._config = config
         self._arrays = FilterArrays.from_config(config)
-        self._ws = np.zeros((16, 5, 5))
+        self._ws = work_buffer()
         self._out = np.zeros(N_OUTPUTS)
         self.reset()
 
