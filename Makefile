@@ -42,3 +42,11 @@ bench: venv
 clean:
 	rm -rf $(VENV) build install log .pytest_cache .ruff_cache *.egg-info
 	find . -name __pycache__ -type d -prune -exec rm -rf {} +
+
+# Regenerate the committed sample bags (bags/README.md lists the same commands).
+.PHONY: bags
+bags: venv
+	$(BIN)/python -m transplanter_ident.simulate -o bags/step20-ccw --scenario step20-ccw --seed 1 --compress --force
+	$(BIN)/python -m transplanter_ident.simulate -o bags/step30-cw --scenario step30-cw --seed 2 --compress --force
+	$(BIN)/python -m transplanter_ident.simulate -o bags/sine --scenario sine --seed 3 --compress --force
+	$(BIN)/python -m transplanter_ident.simulate -o bags/surface-change --scenario surface-change --seed 4 --compress --force

@@ -1,0 +1,150 @@
+"""The `simulate` command and the scenarios: real MCAP bags, the console script run as a subprocess."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.rosbag2 import Reader
+from rosbags.typesys import Stores, get_typestore
+
+from transplanter_ident.scenarios import SCENARIOS, build_config
+from transplanter_ident.sim import SimConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+TS = get_typestore(Stores.ROS2_JAZZY)
+
+
+def command(name: str) -> list[str]:
+    """The console script in this venv if installed, else ``python -m``."""
+    script = Path(sys.executable).parent / name
+    return [str(script)] if script.exists() else [sys.executable, "-m", f"transplanter_ident.{name}"]
+
+
+def run(name: str, *args: object) -> subprocess.CompletedProcess:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH", "")]))
+    return subprocess.run(command(name) + [str(a) for a in args], capture_output=True, text=True, timeout=600,
+                          env=env, cwd=ROOT)
+
+
+def topics(bag: Path) -> dict[str, tuple[str, int]]:
+    with Reader(bag) as reader:
+        return {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
+
+
+def messages(bag: Path, topic: str) -> list:
+    with Reader(bag) as reader:
+        conns = [c for c in reader.connections if c.topic == topic]
+        return [TS.deserialize_cdr(d, c.msgtype) for c, _, d in reader.messages(connections=conns)]
+
+
+REQUIRED = ("step20-ccw", "step30-cw", "sine", "surface-change")
+
+
+def test_scenarios_are_data() -> None:
+    assert set(REQUIRED) <= set(SCENARIOS)
+    for name, scenario in SCENARIOS.items():
+        config = scenario.build(scenario.default_duration)
+        assert isinstance(config, SimConfig), name
+        assert scenario.description
+
+
+def test_scenario_physics() -> None:
+    t = np.linspace(0.0, 90.0, 901)
+    step20 = build_config("step20-ccw")
+    assert step20.speed == pytest.approx(1.0)
+    assert np.max(step20.steering(t)) == pytest.approx(math.radians(20.0))
+    step30 = build_config("step30-cw")
+    assert np.min(step30.steering(t)) == pytest.approx(-math.radians(30.0))
+    assert step30.stiffness.front[0] < step20.stiffness.front[0]  # field: lower stiffness
+    sine = build_config("sine")
+    assert sine.speed == 2.0 and np.max(np.abs(sine.steering(t))) == pytest.approx(math.radians(15.0), rel=1e-3)
+    change = build_config("surface-change", duration=100.0)
+    cf, cr = change.stiffness.at(np.array([10.0, 90.0]))
+    assert cf[1] < 0.6 * cf[0] and cr[1] < 0.6 * cr[0]
+    assert build_config("sine", tire="saturating").tire == "saturating"
+    lever = build_config("sine", antenna_x=0.5, gnss_rate=10.0, seed=4)
+    assert lever.vehicle.antenna_x == 0.5 and lever.gnss_rate == 10.0 and lever.seed == 4
+    with pytest.raises(ValueError, match="unknown scenario"):
+        build_config("nope")
+
+
+def test_default_bag_has_the_pinned_topics_and_truth(tmp_path: Path) -> None:
+    bag = tmp_path / "bag"
+    result = run("simulate", "-o", bag, "--scenario", "step20-ccw", "--duration", "30")
+    assert result.returncode == 0, result.stderr
+    assert "wrote" in result.stdout
+    assert topics(bag) == {
+        "/gnss/vel": ("geometry_msgs/msg/TwistStamped", 151),
+        "/gnss/heading": ("geometry_msgs/msg/QuaternionStamped", 151),
+        "/steering_angle": ("sensor_msgs/msg/JointState", 1501),
+        "/sim/cornering_stiffness": ("geometry_msgs/msg/Vector3Stamped", 151),
+        "/sim/body_velocity": ("geometry_msgs/msg/TwistStamped", 151),
+    }
+    joint = messages(bag, "/steering_angle")[-1]
+    assert list(joint.name) == ["front_steering"]
+    assert joint.position[0] == pytest.approx(math.radians(20.0), abs=0.01)  # left: positive
+    truth = messages(bag, "/sim/cornering_stiffness")[-1]
+    assert (truth.vector.x, truth.vector.y) == (8000.0, 10000.0)
+    body = messages(bag, "/sim/body_velocity")[-1]
+    assert body.twist.linear.x == pytest.approx(1.0) and body.twist.angular.z > 0.2  # counter-clockwise
+
+
+def test_alternative_types_frames_and_topics(tmp_path: Path) -> None:
+    bag = tmp_path / "bag"
+    result = run("simulate", "-o", bag, "--duration", "10", "--velocity-type", "twist-cov", "--heading-type", "imu",
+                 "--steering-type", "float64", "--velocity-frame", "ned", "--heading-frame", "ned",
+                 "--velocity-topic", "/fix/vel", "--no-truth", "--gnss-rate", "10", "--steering-rate", "20",
+                 "--tire", "saturating", "--antenna-x", "0.5")
+    assert result.returncode == 0, result.stderr
+    assert "vehicle.antenna_x 0.5" in result.stdout and "velocity: ned" in result.stdout
+    assert topics(bag) == {
+        "/fix/vel": ("geometry_msgs/msg/TwistWithCovarianceStamped", 101),
+        "/gnss/heading": ("sensor_msgs/msg/Imu", 101),
+        "/steering_angle": ("std_msgs/msg/Float64", 201),
+    }
+    heading = messages(bag, "/gnss/heading")[0]
+    q = heading.orientation
+    compass = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y**2 + q.z**2))
+    assert compass == pytest.approx(math.pi / 2, abs=0.02)  # ENU yaw 0 (east) is compass 90 deg
+
+
+def test_seed_reproducible_and_compression(tmp_path: Path) -> None:
+    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    for bag, extra in ((a, []), (b, []), (c, ["--compress"])):
+        assert run("simulate", "-o", bag, "--duration", "20", "--seed", "5", *extra).returncode == 0
+    assert (a / "a.mcap").read_bytes().replace(b"a.mcap", b"") == (b / "b.mcap").read_bytes().replace(b"b.mcap", b"")
+    assert (c / "c.mcap").stat().st_size < 0.6 * (a / "a.mcap").stat().st_size
+    assert [m.position[0] for m in messages(a, "/steering_angle")] == [
+        m.position[0] for m in messages(c, "/steering_angle")]
+
+
+def test_existing_output_needs_force(tmp_path: Path) -> None:
+    bag = tmp_path / "bag"
+    assert run("simulate", "-o", bag, "--duration", "5").returncode == 0
+    again = run("simulate", "-o", bag, "--duration", "5")
+    assert again.returncode != 0 and "already exists" in again.stderr and "Traceback" not in again.stderr
+    forced = run("simulate", "-o", bag, "--duration", "8", "--force")
+    assert forced.returncode == 0, forced.stderr
+    assert topics(bag)["/gnss/vel"][1] == 41
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bag"]
+
+
+@pytest.mark.parametrize("args", [("--duration", "-1"), ("--speed", "0"), ("--gnss-rate", "nan")])
+def test_bad_options_are_one_line_errors(tmp_path: Path, args: tuple[str, str]) -> None:
+    result = run("simulate", "-o", tmp_path / "bag", *args)
+    assert result.returncode != 0
+    assert "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and result.stderr.startswith("simulate: error: ")
+    assert not (tmp_path / "bag").exists()
+
+
+def test_unknown_scenario_is_a_usage_error(tmp_path: Path) -> None:
+    result = run("simulate", "-o", tmp_path / "bag", "--scenario", "nope")
+    assert result.returncode == 2 and "invalid choice" in result.stderr

@@ -1,0 +1,199 @@
+"""Shared plumbing of the command-line tools (replay, simulate, tuner): errors, atomic output, progress.
+
+No ROS and no numerics here; every CLI uses the same three pieces:
+
+* :func:`run_cli` runs a command body and turns any exception into one line on stderr,
+  ``<prog>: error: <message>``, and a non-zero exit code (DESIGN.md section 6). With
+  ``debug=True`` the traceback is printed first. Typical use::
+
+      def main(argv=None) -> int:
+          parser = build_parser()
+          args = parser.parse_args(argv)
+          return run_cli(parser.prog, lambda: _run(args), debug=args.debug)
+
+  Raise :class:`CliError` (or any ``ValueError``/``OSError`` with a clear message, such as
+  ``bag_io.BagError`` or ``params_file.ParamsError``) for expected failures; anything else is
+  reported as an internal error that names its exception type.
+* :func:`atomic_write_text`, :func:`atomic_output_file` and :func:`atomic_output_dir` write
+  output files and directories atomically: into a temporary name in the target's directory,
+  then ``os.replace``; on failure the temporary is removed and the target is untouched.
+* :class:`Progress` prints coarse progress of long jobs to stderr.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import sys
+import tempfile
+import time
+import traceback
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import IO, TextIO
+
+#: exit code of a failed command (argparse uses 2 for usage errors)
+EXIT_FAILURE = 1
+#: exit code after Ctrl-C
+EXIT_INTERRUPTED = 130
+
+
+class CliError(Exception):
+    """An expected failure with a message fit for the user (one line)."""
+
+
+def one_line(message: object) -> str:
+    """Collapse a message to a single line (no newlines, runs of whitespace squeezed)."""
+    return " ".join(str(message).split())
+
+
+def _describe(exc: BaseException) -> str:
+    text = one_line(exc)
+    if isinstance(exc, (CliError, ValueError)) and text:
+        return text
+    if isinstance(exc, OSError) and exc.strerror:
+        name = exc.filename if exc.filename is not None else ""
+        return f"{name}: {exc.strerror}" if name else exc.strerror
+    if isinstance(exc, MemoryError):
+        return "out of memory"
+    kind = type(exc).__name__
+    return f"internal error: {kind}: {text} (run with --debug for the traceback)" if text else (
+        f"internal error: {kind} (run with --debug for the traceback)")
+
+
+def run_cli(prog: str, body: Callable[[], int | None], *, debug: bool = False,
+            stderr: TextIO | None = None) -> int:
+    """Run ``body`` and return its exit code (None counts as 0).
+
+    Any exception ends as ``<prog>: error: <one-line message>`` on stderr and exit code 1
+    (130 after Ctrl-C), with no traceback unless ``debug``. ``SystemExit`` passes through.
+    """
+    err = stderr if stderr is not None else sys.stderr
+    try:
+        code = body()
+        return 0 if code is None else int(code)
+    except SystemExit:
+        raise
+    except KeyboardInterrupt:
+        if debug:
+            traceback.print_exc(file=err)
+        print(f"{prog}: interrupted", file=err)
+        return EXIT_INTERRUPTED
+    except BaseException as exc:  # noqa: BLE001 - the point is to catch everything
+        if debug:
+            traceback.print_exc(file=err)
+        print(f"{prog}: error: {_describe(exc)}", file=err)
+        return EXIT_FAILURE
+
+
+# --------------------------------------------------------------------------- atomic output
+
+
+@contextlib.contextmanager
+def atomic_output_file(path: str | Path, mode: str = "w", *, encoding: str | None = "utf-8",
+                       newline: str | None = None) -> Iterator[IO]:
+    """Open a temporary file beside ``path``; on success fsync it and rename it over ``path``.
+
+    ``mode`` is ``"w"`` or ``"wb"``. On any exception the temporary file is removed and
+    ``path`` is left as it was. An existing target keeps its permission bits.
+    """
+    target = Path(path)
+    if target.is_dir():
+        raise CliError(f"{target}: is a directory, cannot write a file there")
+    parent = target.parent if str(target.parent) else Path(".")
+    if not parent.is_dir():
+        raise CliError(f"{target}: directory {parent} does not exist")
+    file_mode = target.stat().st_mode & 0o777 if target.is_file() else 0o644
+    fd, tmp = tempfile.mkstemp(dir=parent, prefix=f".{target.name}.", suffix=".tmp")
+    try:
+        binary = "b" in mode
+        with os.fdopen(fd, mode, **({} if binary else {"encoding": encoding, "newline": newline})) as handle:
+            os.fchmod(handle.fileno(), file_mode)
+            yield handle
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    """Write ``text`` to ``path`` atomically (temporary file, then rename)."""
+    with atomic_output_file(path, "w") as handle:
+        handle.write(text)
+
+
+@contextlib.contextmanager
+def atomic_output_dir(path: str | Path, *, overwrite: bool = False) -> Iterator[Path]:
+    """Yield a not-yet-existing path to build a directory at; move it to ``path`` on success.
+
+    The directory is built under a temporary parent in ``path``'s directory, so the final
+    name inside (for example a rosbag2 directory's ``<name>.mcap``) is already right. An
+    existing ``path`` is an error unless ``overwrite``; then it is replaced only after the
+    new directory is complete. On failure nothing at ``path`` changes.
+    """
+    target = Path(path)
+    parent = target.parent if str(target.parent) else Path(".")
+    if target.exists() and not overwrite:
+        raise CliError(f"{target}: already exists (choose another path, or remove it first)")
+    if not parent.is_dir():
+        raise CliError(f"{target}: directory {parent} does not exist")
+    staging = Path(tempfile.mkdtemp(dir=parent, prefix=f".{target.name}.", suffix=".tmp"))
+    try:
+        built = staging / target.name
+        yield built
+        if not built.exists():
+            raise CliError(f"{target}: nothing was written")
+        if target.exists():
+            old = staging / (target.name + ".old")
+            os.replace(target, old)
+        os.replace(built, target)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+# --------------------------------------------------------------------------- progress
+
+
+class Progress:
+    """Coarse progress on stderr: a line at every ``step`` fraction of ``total``.
+
+    Silent for small jobs: it reports only when ``total`` exceeds ``min_total`` and stderr is
+    a terminal, or always when ``total`` exceeds ``always_total``. Call :meth:`update` with
+    the running count (cheap: one comparison per call) and :meth:`done` at the end.
+    """
+
+    def __init__(self, total: int, label: str, *, stream: TextIO | None = None, step: float = 0.1,
+                 min_total: int = 10_000, always_total: int = 100_000) -> None:
+        self.total = max(int(total), 0)
+        self.label = label
+        self.stream = stream if stream is not None else sys.stderr
+        isatty = getattr(self.stream, "isatty", lambda: False)()
+        self.enabled = self.total > always_total or (self.total > min_total and isatty)
+        self._step = max(1, int(self.total * step))
+        #: the count at which the next line is due (callers in hot loops may compare against it)
+        self.next_at = self._step if self.enabled else sys.maxsize
+        self._start = time.monotonic()
+
+    def update(self, count: int) -> None:
+        """Report if ``count`` has passed the next reporting point."""
+        if count >= self.next_at:
+            self._report(count)
+            while self.next_at <= count:
+                self.next_at += self._step
+
+    def _report(self, count: int) -> None:
+        percent = 100.0 * count / self.total if self.total else 100.0
+        elapsed = time.monotonic() - self._start
+        print(f"{self.label}: {min(percent, 100.0):3.0f} % ({count}/{self.total}, {elapsed:.1f} s)",
+              file=self.stream, flush=True)
+
+    def done(self) -> None:
+        """Final line (only when enabled)."""
+        if self.enabled:
+            elapsed = time.monotonic() - self._start
+            print(f"{self.label}: done ({elapsed:.1f} s)", file=self.stream, flush=True)
+            self.enabled = False
+            self.next_at = sys.maxsize
