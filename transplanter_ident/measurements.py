@@ -19,6 +19,7 @@ the simulator tests all feed the same :class:`EpochAssembler`.
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections import deque
 from collections.abc import Iterable, Sequence
@@ -117,18 +118,31 @@ def interval_line(times: Sequence[float], values: Sequence[float], start: float,
     """Mean and least-squares slope over [start, end] of the samples joined by straight lines.
 
     The signal is held constant before the first and after the last sample. ``times``
-    ascending, at least one sample, end > start. Exact (Simpson) integrals per segment.
+    strictly ascending, at least one sample, end > start. Exact (Simpson) integrals per segment.
     """
-    knots = [start] + [t for t in times if start < t < end] + [end]
-    level = [float(np.interp(t, times, values)) for t in knots]
+    first = bisect.bisect_right(times, start)
+    last = bisect.bisect_left(times, end)
+    knots = [start, *times[first:last], end]
+    level = [_interpolate(times, values, start), *values[first:last], _interpolate(times, values, end)]
     centre = 0.5 * (start + end)
     area = moment = 0.0
-    for a, b, ya, yb in zip(knots[:-1], knots[1:], level[:-1], level[1:], strict=True):
+    for i in range(len(knots) - 1):
+        a, b, ya, yb = knots[i], knots[i + 1], level[i], level[i + 1]
         area += 0.5 * (b - a) * (ya + yb)
-        mid = 0.5 * (a + b)
-        moment += (b - a) / 6.0 * ((a - centre) * ya + 2.0 * (mid - centre) * (ya + yb) + (b - centre) * yb)
+        moment += (b - a) / 6.0 * ((a - centre) * ya + (a + b - 2.0 * centre) * (ya + yb) + (b - centre) * yb)
     span = end - start
     return area / span, moment * 12.0 / span**3
+
+
+def _interpolate(times: Sequence[float], values: Sequence[float], t: float) -> float:
+    """Linear interpolation, held constant beyond the first and last sample."""
+    i = bisect.bisect_right(times, t)
+    if i == 0:
+        return values[0]
+    if i == len(times):
+        return values[-1]
+    t0, t1 = times[i - 1], times[i]
+    return values[i - 1] + (values[i] - values[i - 1]) * (t - t0) / (t1 - t0)
 
 
 @dataclass(frozen=True)
