@@ -1,7 +1,7 @@
 """Reading and writing rosbag2 bags (MCAP) with rosbags; the only module that imports rosbags.
 
 Reading (``replay``, ``tuner``): a rosbag2 directory (with ``metadata.yaml``) or a single
-``.mcap`` file. The configured velocity, heading and steering topics are decoded in every
+``.mcap`` file. The configured velocity, heading and steering topics are read in every
 accepted message type (DESIGN.md section 3) into ``(role, stamp, values)`` samples, streamed
 in log-time order, and turned into epochs by :class:`transplanter_ident.measurements.EpochAssembler`,
 the same conversion the node uses:
@@ -12,9 +12,9 @@ the same conversion the node uses:
 * steering, ``sensor_msgs/JointState`` (joint ``steering.joint_name``) or ``std_msgs/Float64``: ``(angle,)``.
 
 The stamp is ``header.stamp`` in seconds; ``std_msgs/Float64`` has no header and a zero header
-stamp means "unset", so those use the log time. The bag is streamed chunk by chunk and only the
-wanted topics are decoded: the common little-endian CDR layouts are read with ``struct`` directly
-(checked against rosbags' deserialiser in the tests), anything else goes through rosbags.
+stamp means "unset", so those use the log time. Only the wanted connections are read
+(``Reader.messages``), each message is deserialised with the Jazzy typestore and its fields are
+taken by an extractor chosen once per connection.
 
 Writing: :class:`BagWriter` writes an MCAP rosbag2 directory with the ROS 2 Jazzy typestore,
 atomically (built under a temporary name, renamed when complete). :func:`write_sim_bag` writes a
@@ -26,7 +26,6 @@ Every failure is a :class:`BagError` with a one-line message naming the bag and 
 from __future__ import annotations
 
 import math
-import struct
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -37,14 +36,8 @@ from typing import Any
 import numpy as np
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
-
-try:  # rosbags internals for the fast chunk scan; without them everything goes through Reader.messages
-    from rosbags.rosbag2.reader import DirectoryReader as _DirectoryStorage
-    from rosbags.rosbag2.storage_mcap import McapReader as _McapStorage
-    from rosbags.rosbag2.storage_mcap import decompress as _mcap_decompress
-except ImportError:  # pragma: no cover - other rosbags versions
-    _DirectoryStorage = _McapStorage = _mcap_decompress = None
 
 from .cli_util import Progress, atomic_output_dir, one_line
 from .measurements import AssemblerSettings, EpochArrays, EpochAssembler, Rejection, assemble
@@ -114,151 +107,85 @@ def normalize_msgtype(msgtype: str) -> str:
     return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else msgtype
 
 
-# --------------------------------------------------------------------------- CDR decoding
-
-_TIME = struct.Struct("<iI")
-_U32 = struct.Struct("<I")
-_D1 = struct.Struct("<d")
-_D2 = struct.Struct("<2d")
-_D3 = struct.Struct("<3d")
-_D4 = struct.Struct("<4d")
-_D6 = struct.Struct("<6d")
-_CDR_LE = b"\x00\x01"
+# --------------------------------------------------------------------------- field extraction
 
 
-class _Malformed(Exception):
-    """A message whose bytes do not decode."""
+class _Unusable(Exception):
+    """A message that deserialises but lacks what is needed (the reason is the message)."""
 
 
-def _after_header(data: bytes) -> tuple[int, int]:
-    """(stamp ns, offset of the first 8-aligned field after std_msgs/Header) of a CDR_LE message."""
-    sec, nanosec = _TIME.unpack_from(data, 4)
-    (length,) = _U32.unpack_from(data, 12)
-    end = 16 + length  # absolute offset; CDR alignment counts from offset 4
-    if end > len(data):
-        raise _Malformed("header frame_id runs past the end of the message")
-    return sec * NS_PER_S + nanosec, end + (-(end - 4) % 8)
+#: errors of deserialising one message's bytes (rosbags wraps struct/unicode/value errors in SerdeError)
+_DECODE_ERRORS = (SerdeError, ValueError, IndexError)
+
+#: (deserialised message, log ns, steering joint name) -> (stamp s, values)
+Extractor = Callable[[Any, int, str], tuple[float, tuple[float, ...]]]
 
 
-def _stamp_or_log(stamp_ns: int, log_ns: int) -> float:
-    return seconds(stamp_ns if stamp_ns else log_ns)
+def _stamp(msg: Any, log_ns: int) -> float:
+    """``header.stamp`` in seconds, or the log time when the stamp is zero (unset)."""
+    stamp = msg.header.stamp
+    return seconds((stamp.sec * NS_PER_S + stamp.nanosec) or log_ns)
 
 
-def _fast_velocity(data: bytes, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
-    # TwistStamped and TwistWithCovarianceStamped both start header, linear, angular
-    stamp_ns, pos = _after_header(data)
-    return _stamp_or_log(stamp_ns, log_ns), _D2.unpack_from(data, pos)
+def _from_twist(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
+    linear = msg.twist.linear
+    return _stamp(msg, log_ns), (linear.x, linear.y)
 
 
-def _fast_heading(data: bytes, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
-    # QuaternionStamped and Imu both start header, quaternion (x, y, z, w)
-    stamp_ns, pos = _after_header(data)
-    return _stamp_or_log(stamp_ns, log_ns), (quaternion_yaw(*_D4.unpack_from(data, pos)),)
+def _from_twist_cov(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
+    linear = msg.twist.twist.linear
+    return _stamp(msg, log_ns), (linear.x, linear.y)
 
 
-def _fast_float64(data: bytes, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
-    return seconds(log_ns), _D1.unpack_from(data, 4)
+def _from_quaternion(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
+    q = msg.quaternion
+    return _stamp(msg, log_ns), (quaternion_yaw(q.x, q.y, q.z, q.w),)
 
 
-def _fast_joint_state(data: bytes, log_ns: int, joint: str) -> tuple[float, tuple[float, ...]]:
-    sec, nanosec = _TIME.unpack_from(data, 4)
-    (length,) = _U32.unpack_from(data, 12)
-    pos = 16 + length
-    pos += -(pos - 4) % 4
-    (count,) = _U32.unpack_from(data, pos)
-    pos += 4
-    index = -1
-    wanted = joint.encode()
-    for i in range(count):
-        pos += -(pos - 4) % 4
-        (length,) = _U32.unpack_from(data, pos)
-        if index < 0 and data[pos + 4:pos + 3 + length] == wanted:
-            index = i
-        pos += 4 + length
-    pos += -(pos - 4) % 4
-    (npos,) = _U32.unpack_from(data, pos)
-    pos += 4
-    pos += -(pos - 4) % 8
-    if index < 0:
-        raise _Malformed(f"joint {joint!r} not in the JointState")
-    if index >= npos:
-        raise _Malformed(f"joint {joint!r} has no position")
-    return _stamp_or_log(sec * NS_PER_S + nanosec, log_ns), _D1.unpack_from(data, pos + 8 * index)
+def _from_imu(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
+    q = msg.orientation
+    return _stamp(msg, log_ns), (quaternion_yaw(q.x, q.y, q.z, q.w),)
 
 
-def _slow_decode(msgtype: str) -> Callable[[bytes, int, str], tuple[float, tuple[float, ...]]]:
-    """Decoder through rosbags' deserialiser (big-endian CDR and anything unusual)."""
-
-    def decode(data: bytes, log_ns: int, joint: str) -> tuple[float, tuple[float, ...]]:
-        msg = TYPESTORE.deserialize_cdr(data, msgtype)
-        if msgtype == FLOAT64:
-            return seconds(log_ns), (float(msg.data),)
-        stamp_ns = msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec
-        stamp = _stamp_or_log(stamp_ns, log_ns)
-        if msgtype == TWIST_STAMPED:
-            return stamp, (msg.twist.linear.x, msg.twist.linear.y)
-        if msgtype == TWIST_COV_STAMPED:
-            return stamp, (msg.twist.twist.linear.x, msg.twist.twist.linear.y)
-        if msgtype in (QUATERNION_STAMPED, IMU):
-            q = msg.quaternion if msgtype == QUATERNION_STAMPED else msg.orientation
-            return stamp, (quaternion_yaw(q.x, q.y, q.z, q.w),)
-        if msgtype == JOINT_STATE:
-            names = list(msg.name)
-            if joint not in names:
-                raise _Malformed(f"joint {joint!r} not in the JointState")
-            index = names.index(joint)
-            if index >= len(msg.position):
-                raise _Malformed(f"joint {joint!r} has no position")
-            return stamp, (float(msg.position[index]),)
-        if msgtype == VECTOR3_STAMPED:
-            return stamp, (msg.vector.x, msg.vector.y, msg.vector.z)
-        raise _Malformed(f"unsupported type {msgtype}")
-
-    return decode
+def _from_joint_state(msg: Any, log_ns: int, joint: str) -> tuple[float, tuple[float, ...]]:
+    if joint not in msg.name:
+        raise _Unusable(f"joint {joint!r} not in the JointState")
+    index = msg.name.index(joint)
+    if index >= len(msg.position):
+        raise _Unusable(f"joint {joint!r} has no position")
+    return _stamp(msg, log_ns), (float(msg.position[index]),)
 
 
-def _fast_vector3(data: bytes, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
-    stamp_ns, pos = _after_header(data)
-    return _stamp_or_log(stamp_ns, log_ns), _D3.unpack_from(data, pos)
+def _from_float64(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
+    return seconds(log_ns), (float(msg.data),)
 
 
-def _fast_twist_truth(data: bytes, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
-    stamp_ns, pos = _after_header(data)
-    lx, ly, _lz, _ax, _ay, az = _D6.unpack_from(data, pos)
-    return _stamp_or_log(stamp_ns, log_ns), (lx, ly, az)
+def _from_vector3(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
+    v = msg.vector
+    return _stamp(msg, log_ns), (v.x, v.y, v.z)
 
 
-_FAST = {
-    TWIST_STAMPED: _fast_velocity,
-    TWIST_COV_STAMPED: _fast_velocity,
-    QUATERNION_STAMPED: _fast_heading,
-    IMU: _fast_heading,
-    JOINT_STATE: _fast_joint_state,
-    FLOAT64: _fast_float64,
-    VECTOR3_STAMPED: _fast_vector3,
+def _from_twist_truth(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
+    twist = msg.twist
+    return _stamp(msg, log_ns), (twist.linear.x, twist.linear.y, twist.angular.z)
+
+
+#: extractor of the input samples per accepted message type
+EXTRACTORS: dict[str, Extractor] = {
+    TWIST_STAMPED: _from_twist,
+    TWIST_COV_STAMPED: _from_twist_cov,
+    QUATERNION_STAMPED: _from_quaternion,
+    IMU: _from_imu,
+    JOINT_STATE: _from_joint_state,
+    FLOAT64: _from_float64,
+    VECTOR3_STAMPED: _from_vector3,
 }
-
-
-def _truth_velocity_slow(data: bytes, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
-    msg = TYPESTORE.deserialize_cdr(data, TWIST_STAMPED)
-    stamp_ns = msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec
-    return _stamp_or_log(stamp_ns, log_ns), (msg.twist.linear.x, msg.twist.linear.y, msg.twist.angular.z)
-
-
-Decoder = Callable[[bytes, int, str], tuple[float, tuple[float, ...]]]
-
-
-def _decoders(msgtype: str, *, truth_velocity: bool = False) -> tuple[Decoder, Decoder]:
-    """(fast, slow) decoders (data, log_ns, joint) -> (stamp s, values): struct for CDR_LE, else rosbags."""
-    fast = _fast_twist_truth if truth_velocity else _FAST[msgtype]
-    slow = _truth_velocity_slow if truth_velocity else _slow_decode(msgtype)
-    return fast, slow
 
 
 def decode_message(msgtype: str, data: bytes, log_ns: int, joint_name: str = "front_steering") -> tuple:
     """Decode one serialized input message to ``(stamp s, values)`` as the reader does (for tests/tools)."""
-    fast, slow = _decoders(normalize_msgtype(msgtype))
-    return fast(data, log_ns, joint_name) if data[:2] == _CDR_LE else slow(bytes(data), log_ns, joint_name)
+    msgtype = normalize_msgtype(msgtype)
+    return EXTRACTORS[msgtype](TYPESTORE.deserialize_cdr(data, msgtype), log_ns, joint_name)
 
 
 # --------------------------------------------------------------------------- reading
@@ -347,91 +274,8 @@ def open_reader(path: str | Path) -> Iterator[Reader]:
             pass
 
 
-_RECORD = struct.Struct("<BQ")  # MCAP record: opcode, length
-_MESSAGE = struct.Struct("<HIQQ")  # MCAP message record: channel id, sequence, log time, publish time
-_CHUNK_CRC = struct.Struct("<I")
-
-
-def _fast_plan(reader: Reader, connections: Sequence[Any]) -> list[tuple[Any, dict[int, Any]]] | None:
-    """[(McapReader, {channel id: connection})] when the fast chunk scan gives rosbags' exact order.
-
-    That holds for chunked, uncompressed-per-message MCAP storage whose chunks do not overlap in
-    time; anything else (sqlite3, unchunked or time-overlapping chunks) returns None.
-    """
-    if _McapStorage is None:
-        return None
-    storage = reader.storage
-    if isinstance(storage, _McapStorage):
-        storages = [storage]
-    elif _DirectoryStorage is not None and isinstance(storage, _DirectoryStorage):
-        if storage.metadata.compression_mode == "message":
-            return None
-        storages = list(storage.storages)
-    else:
-        return None
-    wanted: dict[tuple[str, str], Any] = {}
-    for conn in connections:
-        wanted.setdefault((conn.topic, conn.msgtype), conn)
-    plan = []
-    for part in storages:
-        if not isinstance(part, _McapStorage) or not part.chunks or part.bio is None:
-            return None
-        previous_end = -1
-        for chunk in part.chunks:
-            if chunk.message_start_time < previous_end:
-                return None
-            previous_end = max(previous_end, chunk.message_end_time)
-        channel_map = {c.id: wanted[(c.topic, c.msgtype)] for c in part.connections
-                       if (c.topic, c.msgtype) in wanted}
-        plan.append((part, channel_map))
-    return plan
-
-
-def _raw_messages(reader: Reader, connections: Sequence[Any], *, fast: bool = True) -> Iterator[tuple[Any, int, Any]]:
-    """(connection, log ns, data) of ``connections`` in log-time order, like ``reader.messages``.
-
-    The fast path decompresses one MCAP chunk at a time and slices its message records
-    without per-record file objects (data are memoryviews into the chunk); other storage
-    goes through rosbags. Both give the same messages in the same order (tested).
-    """
-    plan = _fast_plan(reader, connections) if fast else None
-    if plan is None:
-        yield from reader.messages(connections=connections)
-        return
-    record, message = _RECORD.unpack_from, _MESSAGE.unpack_from
-    for storage, channel_map in plan:
-        bio = storage.bio
-        for chunk in storage.chunks:
-            if chunk.channel_count and not any(chunk.channel_count.get(cid, 0) for cid in channel_map):
-                continue
-            bio.seek(chunk.chunk_start_offset + 9 + 24)
-            (crc,) = _CHUNK_CRC.unpack(bio.read(4))
-            bio.seek(chunk.chunk_start_offset + 9 + 40 + len(chunk.compression))
-            compressed = bio.read(chunk.compressed_size)
-            if len(compressed) != chunk.compressed_size:
-                raise ValueError(f"chunk at offset {chunk.chunk_start_offset} runs past the end of the file")
-            raw = memoryview(_mcap_decompress(compressed, chunk.compression, chunk.uncompressed_size, crc))
-            end = len(raw)
-            found = []
-            pos = 0
-            while pos < end:
-                opcode, length = record(raw, pos)
-                body = pos + 9
-                pos = body + length
-                if opcode == 0x05:
-                    channel_id, _, log_time, _ = message(raw, body)
-                    conn = channel_map.get(channel_id)
-                    if conn is not None:
-                        found.append((log_time, conn, raw[body + 22:pos]))
-            if pos != end:
-                raise ValueError(f"chunk at offset {chunk.chunk_start_offset} has a record past its end")
-            found.sort(key=_first)
-            for log_time, conn, data in found:
-                yield conn, log_time, data
-
-
-def _first(item: tuple) -> Any:
-    return item[0]
+#: connection id -> (role, normalised message type, extractor)
+_Table = dict[int, tuple[str, str, Extractor]]
 
 
 def _topic_types(reader: Reader) -> dict[str, list[Any]]:
@@ -441,12 +285,12 @@ def _topic_types(reader: Reader) -> dict[str, list[Any]]:
     return topics
 
 
-def _select(path: str | Path, reader: Reader, params: Any) -> dict[int, tuple[str, Decoder, Decoder]]:
-    """Connection id -> (role, decoder) for the input topics; BagError if one is missing or mistyped."""
+def _select(path: str | Path, reader: Reader, params: Any) -> _Table:
+    """The input connections; BagError if an input topic is missing, mistyped or empty."""
     if reader.message_count == 0:
         raise BagError(f"{path}: the bag is empty (no messages)")
     topics = _topic_types(reader)
-    table: dict[int, tuple[str, Decoder, Decoder]] = {}
+    table: _Table = {}
     for role in ROLES:
         topic = getattr(params.topics, role)
         conns = topics.get(topic)
@@ -462,20 +306,22 @@ def _select(path: str | Path, reader: Reader, params: Any) -> dict[int, tuple[st
         if sum(c.msgcount for c in good) == 0:
             raise BagError(f"{path}: topic {topic} (the {role} input) has no messages")
         for conn in good:
-            table[conn.id] = (role, *_decoders(normalize_msgtype(conn.msgtype)))
+            msgtype = normalize_msgtype(conn.msgtype)
+            table[conn.id] = (role, msgtype, EXTRACTORS[msgtype])
     return table
 
 
-def _select_truth(reader: Reader, notes: list[str]) -> dict[int, tuple[str, Decoder, Decoder]]:
+def _select_truth(reader: Reader, notes: list[str]) -> _Table:
+    """The ground truth connections; mistyped ones are noted and ignored."""
     topics = _topic_types(reader)
-    table: dict[int, tuple[str, Decoder, Decoder]] = {}
-    for topic, msgtype, role, truth_velocity in (
-        (TRUTH_STIFFNESS_TOPIC, VECTOR3_STAMPED, "truth_stiffness", False),
-        (TRUTH_VELOCITY_TOPIC, TWIST_STAMPED, "truth_velocity", True),
+    table: _Table = {}
+    for topic, msgtype, role, extract in (
+        (TRUTH_STIFFNESS_TOPIC, VECTOR3_STAMPED, "truth_stiffness", _from_vector3),
+        (TRUTH_VELOCITY_TOPIC, TWIST_STAMPED, "truth_velocity", _from_twist_truth),
     ):
         for conn in topics.get(topic, []):
             if normalize_msgtype(conn.msgtype) == msgtype:
-                table[conn.id] = (role, *_decoders(msgtype, truth_velocity=truth_velocity))
+                table[conn.id] = (role, msgtype, extract)
             else:
                 notes.append(f"ground truth topic {topic} has type {conn.msgtype}, not {msgtype}: ignored")
     return table
@@ -489,15 +335,13 @@ def _settings(params: Any) -> AssemblerSettings:
 
 
 class _Scan:
-    """One streaming pass: yields input samples, collects truth, decode failures and counts."""
+    """One streaming pass: yields input samples, collects truth, unusable messages and counts."""
 
-    def __init__(self, path: str | Path, params: Any, *, truth: bool, progress: str | None,
-                 fast: bool = True) -> None:
+    def __init__(self, path: str | Path, params: Any, *, truth: bool, progress: bool) -> None:
         self.path = path
-        self.fast = fast
         self.params = params
         self.want_truth = truth
-        self.progress_label = progress
+        self.progress = progress
         self.rejections: list[Rejection] = []
         self.notes: list[str] = []
         self.counts: Counter[str] = Counter()
@@ -506,31 +350,29 @@ class _Scan:
 
     def samples(self) -> Iterator[tuple[str, float, tuple[float, ...]]]:
         joint = self.params.steering.joint_name
+        deserialize = TYPESTORE.deserialize_cdr
+        counts, truth_rows = self.counts, self.truth_rows
         with open_reader(self.path) as reader:
             table = _select(self.path, reader, self.params)
             if self.want_truth:
                 table.update(_select_truth(reader, self.notes))
             connections = [c for c in reader.connections if c.id in table]
-            total = sum(c.msgcount for c in connections)
-            progress = Progress(total, f"reading {self.path}") if self.progress_label is not None else None
-            next_report = progress.next_at if progress is not None and progress.enabled else math.inf
-            counts = self.counts
-            truth_rows = self.truth_rows
-            n = 0
-            for conn, log_ns, data in _raw_messages(reader, connections, fast=self.fast):
-                n += 1
+            progress = None
+            if self.progress:
+                progress = Progress(sum(c.msgcount for c in connections), f"reading {self.path}")
+            next_report = progress.next_at if progress is not None else math.inf
+            for n, (conn, log_ns, data) in enumerate(reader.messages(connections=connections), 1):
                 if n >= next_report:
                     progress.update(n)
                     next_report = progress.next_at
-                role, fast, slow = table[conn.id]
+                role, msgtype, extract = table[conn.id]
                 try:
-                    if data[0] == 0 and data[1] == 1:  # little-endian plain CDR
-                        stamp, values = fast(data, log_ns, joint)
-                    else:
-                        stamp, values = slow(bytes(data), log_ns, joint)
-                except (_Malformed, struct.error, IndexError, UnicodeDecodeError, ValueError,
-                        AssertionError) as exc:
-                    reason = str(exc) if isinstance(exc, _Malformed) else f"undecodable {conn.msgtype} message"
+                    stamp, values = extract(deserialize(data, msgtype), log_ns, joint)
+                except _Unusable as exc:
+                    self.rejections.append(Rejection(role.removeprefix("truth_"), seconds(log_ns), str(exc)))
+                    continue
+                except _DECODE_ERRORS:
+                    reason = f"undecodable {conn.msgtype} message"
                     self.rejections.append(Rejection(role.removeprefix("truth_"), seconds(log_ns), reason))
                     continue
                 counts[role] += 1
@@ -540,9 +382,6 @@ class _Scan:
                     yield role, stamp, values
             if progress is not None:
                 progress.done()
-
-    def truth(self) -> Truth | None:
-        return _build_truth(self.truth_rows)
 
 
 def _build_truth(rows: dict[str, list[tuple[float, tuple[float, ...]]]]) -> Truth | None:
@@ -561,17 +400,16 @@ def _build_truth(rows: dict[str, list[tuple[float, tuple[float, ...]]]]) -> Trut
     return Truth(t=t, cf=stiff[:, 0], cr=stiff[:, 1], vx=vx, vy=vy, r=r)
 
 
-def read_samples(path: str | Path, params: Any, rejections: list[Rejection] | None = None, *,
-                 fast: bool = True) -> Iterator[tuple[str, float, tuple[float, ...]]]:
+def read_samples(path: str | Path, params: Any,
+                 rejections: list[Rejection] | None = None) -> Iterator[tuple[str, float, tuple[float, ...]]]:
     """Stream ``(role, stamp s, values)`` input samples in log-time order.
 
     ``role`` is ``velocity`` (values east/north or north/east by frame), ``heading`` (yaw) or
     ``steering`` (angle). Messages that do not decode (a JointState without the steering joint,
     malformed bytes) are skipped and appended to ``rejections`` if given. ``params`` is a
-    ``params_file.EstimatorParams`` (topics, steering.joint_name are used). ``fast=False``
-    reads through rosbags' ``Reader.messages`` instead of the chunk scan (same result, slower).
+    ``params_file.EstimatorParams`` (topics, steering.joint_name are used).
     """
-    scan = _Scan(path, params, truth=False, progress=None, fast=fast)
+    scan = _Scan(path, params, truth=False, progress=False)
     try:
         yield from scan.samples()
     finally:
@@ -579,14 +417,13 @@ def read_samples(path: str | Path, params: Any, rejections: list[Rejection] | No
             rejections.extend(scan.rejections)
 
 
-def read_bag(path: str | Path, params: Any, *, truth: bool = True, progress: bool = False,
-             fast: bool = True) -> BagData:
+def read_bag(path: str | Path, params: Any, *, truth: bool = True, progress: bool = False) -> BagData:
     """One streaming pass: epochs (via the node's EpochAssembler), rejections, ground truth, counts.
 
     Raises :class:`BagError` when the bag cannot be read, an input topic is missing or mistyped,
     or no epoch can be formed.
     """
-    scan = _Scan(path, params, truth=truth, progress="" if progress else None, fast=fast)
+    scan = _Scan(path, params, truth=truth, progress=progress)
     assembler = EpochAssembler(_settings(params))
     epochs = assemble(assembler, scan.samples())
     rejections = scan.rejections + assembler.drain_rejections()
@@ -597,7 +434,7 @@ def read_bag(path: str | Path, params: Any, *, truth: bool = True, progress: boo
         top = summarize_rejections(rejections)[:1]
         why = f"; most common rejection: {top[0][0]}: {top[0][1]} ({top[0][2]}x)" if top else ""
         raise BagError(f"{path}: no epoch could be formed from {summary} messages{why}")
-    truth_data = scan.truth() if truth else None
+    truth_data = _build_truth(scan.truth_rows) if truth else None
     if truth:
         counts["truth"] = scan.counts.get("truth_stiffness", 0)
     return BagData(Path(path), EpochArrays(epochs), rejections, truth_data, counts, scan.notes)
@@ -611,19 +448,17 @@ def read_epochs(path: str | Path, params: Any) -> tuple[EpochArrays, list[Reject
 
 def read_truth(path: str | Path) -> Truth | None:
     """The ``/sim/*`` ground truth of a simulated bag, or None when the bag has none."""
-    notes: list[str] = []
     rows: dict[str, list[tuple[float, tuple[float, ...]]]] = {"truth_stiffness": [], "truth_velocity": []}
     with open_reader(path) as reader:
-        table = _select_truth(reader, notes)
+        table = _select_truth(reader, [])
         if not table:
             return None
         connections = [c for c in reader.connections if c.id in table]
-        for conn, log_ns, data in _raw_messages(reader, connections):
-            role, fast, slow = table[conn.id]
+        for conn, log_ns, data in reader.messages(connections=connections):
+            role, msgtype, extract = table[conn.id]
             try:
-                little = data[0] == 0 and data[1] == 1
-                rows[role].append(fast(data, log_ns, "") if little else slow(bytes(data), log_ns, ""))
-            except (_Malformed, struct.error, IndexError, ValueError) as exc:
+                rows[role].append(extract(TYPESTORE.deserialize_cdr(data, msgtype), log_ns, ""))
+            except _DECODE_ERRORS as exc:
                 raise BagError(f"{path}: malformed ground truth message on {conn.topic}: {_reason(exc)}") from exc
     return _build_truth(rows)
 
