@@ -66,8 +66,8 @@ def format_table2(rows: list[Table2Row], title: str = "") -> str:
     lines = [title] if title else []
     lines += [head, units]
     for row in rows:
-        lines.append(f"{row.label:<26}{row.max_error_vy:>12.4f}{row.max_error_r:>12.4f}"
-                     f"{row.mean_error_vy:>13.4f}{row.mean_error_r:>12.4f}")
+        lines.append(f"{row.label:<26}{row.max_error_vy:>12.4g}{row.max_error_r:>12.4g}"
+                     f"{row.mean_error_vy:>13.4g}{row.mean_error_r:>12.4g}")
     return "\n".join(lines)
 
 

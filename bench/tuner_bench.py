@@ -1,0 +1,113 @@
+"""End-to-end wall time of `tuner` with the paper's settings on a 10-minute 5 Hz bag (exact/log model).
+
+Not a test. The bag is ``simulate --scenario sine --duration 600`` (3000 epochs, 5 Hz GNSS,
+50 Hz steering), generated once and cached in ``$TRANSPLANTER_BENCH_CACHE`` (default:
+``<tmp>/transplanter_ident_bench``). Each run is ``tuner BAG -o OUT.yaml --seed N`` as a
+subprocess with the defaults: IPSO, F = 20, k_max = 40 (820 filter runs over 3000 epochs),
+objective eq. (21), model exact ZOH / log stiffness / heading measurement. The wall time
+includes interpreter start-up, imports, the bag read and the YAML write.
+
+Two conditions, ``--runs`` each (default 3), median reported:
+
+* **cold**: an empty numba cache (``NUMBA_CACHE_DIR`` set to a fresh directory), so every
+  compiled function is compiled inside the timed run -- what a fresh clone pays once;
+* **warm**: numba's on-disk cache filled (``cache=True``), the usual case.
+
+Target (issue "IPSO tuner"): wall <= 15 s including start-up and the bag read.
+
+Run: ``python bench/tuner_bench.py [--runs N]``; ``bench/run.py`` calls :func:`main`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+BAG_VERSION = "v1"
+TARGET_WALL = 15.0
+
+
+def _command(name: str) -> list[str]:
+    script = Path(sys.executable).parent / name
+    return [str(script)] if script.exists() else [sys.executable, "-m", f"transplanter_ident.{name}"]
+
+
+def _env(**extra: str) -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH", "")]))
+    env.update(extra)
+    return env
+
+
+def ensure_bag(cache: Path) -> Path:
+    """The cached 10-minute bag (generated on first use)."""
+    bag = cache / f"tuner_600s_5hz_{BAG_VERSION}"
+    if (bag / "metadata.yaml").is_file():
+        return bag
+    cache.mkdir(parents=True, exist_ok=True)
+    print(f"generating {bag} (once) ...", flush=True)
+    subprocess.run([*_command("simulate"), "-o", str(bag), "--scenario", "sine", "--duration", "600", "--seed", "0",
+                    "--force"], check=True, env=_env(), cwd=ROOT, stdout=subprocess.DEVNULL)
+    return bag
+
+
+def run_tuner(bag: Path, out: Path, seed: int, env: dict[str, str]) -> tuple[float, str]:
+    """(wall s, stdout) of one tuner subprocess; raises if it fails."""
+    start = time.perf_counter()
+    result = subprocess.run([*_command("tuner"), str(bag), "-o", str(out), "--seed", str(seed)],
+                            capture_output=True, text=True, env=env, cwd=ROOT)
+    wall = time.perf_counter() - start
+    if result.returncode != 0:
+        raise RuntimeError(f"tuner failed ({result.returncode}): {result.stderr[-2000:]}")
+    return wall, result.stdout
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark and print the table; returns 0 (1 if the target is missed and --strict)."""
+    parser = argparse.ArgumentParser(prog="tuner_bench", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--runs", type=int, default=3, help="runs per condition (default 3)")
+    parser.add_argument("--cache", type=Path,
+                        default=Path(os.environ.get("TRANSPLANTER_BENCH_CACHE",
+                                                    Path(tempfile.gettempdir()) / "transplanter_ident_bench")))
+    parser.add_argument("--strict", action="store_true", help="exit 1 when the target is missed")
+    args = parser.parse_args(argv)
+
+    bag = ensure_bag(args.cache)
+    cold, warm = [], []
+    with tempfile.TemporaryDirectory(prefix="tuner_bench_") as tmp:
+        work = Path(tmp)
+        run_tuner(bag, work / "warmup.yaml", 0, _env())  # fills the regular numba cache for the warm runs
+        for i in range(args.runs):  # interleaved, so drift affects both alike
+            fresh = work / f"numba_cache_{i}"
+            fresh.mkdir()
+            cold.append(run_tuner(bag, work / f"cold{i}.yaml", i, _env(NUMBA_CACHE_DIR=str(fresh))))
+            warm.append(run_tuner(bag, work / f"warm{i}.yaml", i, _env()))
+    summary = next((line for line in warm[-1][1].splitlines() if line.startswith("ipso:")), "")
+
+    print(f"\ntuner end-to-end benchmark: {bag.name} (3000 epochs), IPSO F = 20, k_max = 40, exact/log/heading; "
+          f"median of {args.runs} runs (Python {sys.version.split()[0]}, {os.cpu_count()} CPUs)")
+    head = f"{'condition':<46}{'wall [s]':>10}{'min':>8}{'max':>8}{'target':>10}"
+    print(head)
+    print("-" * len(head))
+    missed = False
+    for label, rows in (("cold: empty numba cache (compile included)", cold),
+                        ("warm: numba cache filled", warm)):
+        walls = [w for w, _ in rows]
+        median = statistics.median(walls)
+        ok = median <= TARGET_WALL
+        missed |= not ok
+        print(f"{label:<46}{median:>10.2f}{min(walls):>8.2f}{max(walls):>8.2f}{'met' if ok else 'MISSED':>10}")
+    print("-" * len(head))
+    print(f"target: wall <= {TARGET_WALL:g} s including start-up and the bag read; last run: {summary}")
+    return 1 if args.strict and missed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,304 @@
+"""Tests of the optimisers (PSO eqs. 15-16, IPSO eqs. 17-20) and the Q/R search space (eq. 22)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from helpers import simulate_epochs
+
+from transplanter_ident import ekf
+from transplanter_ident.optimize import (
+    Box,
+    IpsoSettings,
+    PsoSettings,
+    ackley,
+    detection_radius,
+    inertia,
+    logistic_map,
+    minimize,
+    pso_for_budget,
+    random_search,
+    rastrigin,
+    settings_for,
+    shifted,
+)
+from transplanter_ident.parameters import EstimatorConfig, FilterOptions, NoiseParams
+from transplanter_ident.scenarios import build_config
+from transplanter_ident.tuning import (
+    NAMES,
+    TuningProblem,
+    batch_objective,
+    candidate_matrices,
+    noise_to_vector,
+    search_box,
+    vector_to_noise,
+)
+
+RASTRIGIN_BOX = Box.cube(6, -5.12, 5.12)
+ACKLEY_BOX = Box.cube(6, -32.768, 32.768)
+SHIFT = np.array([1.3, -2.1, 0.7, 2.9, -0.4, 1.8])  # the optimum off the box centre (eq. 17 pulls to the centre)
+
+
+class Recorder:
+    """A batch objective that records every evaluated point."""
+
+    def __init__(self, function) -> None:  # noqa: ANN001
+        self.function = function
+        self.points: list[np.ndarray] = []
+        self.calls = 0
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        self.points.append(np.array(x, copy=True))
+        self.calls += 1
+        return self.function(x)
+
+    @property
+    def count(self) -> int:
+        return sum(len(p) for p in self.points)
+
+    @property
+    def all_points(self) -> np.ndarray:
+        return np.vstack(self.points)
+
+
+def plateau(x: np.ndarray) -> np.ndarray:
+    """Flat except near one corner: every particle stagnates, so the chaotic search (eqs. 19-20) runs."""
+    x = np.atleast_2d(x)
+    return np.where(np.all(x > 0.9, axis=1), -1.0, 0.0)
+
+
+# --------------------------------------------------------------------------- building blocks
+
+
+def test_box_validation_and_helpers() -> None:
+    box = Box((0.0, -1.0), (1.0, 1.0))
+    assert box.dimension == 2
+    np.testing.assert_allclose(box.width, [1.0, 2.0])
+    np.testing.assert_allclose(box.clip(np.array([[2.0, -3.0]])), [[1.0, -1.0]])
+    with pytest.raises(ValueError):
+        Box((0.0,), (0.0,))
+    with pytest.raises(ValueError):
+        Box((0.0, 1.0), (1.0,))
+    with pytest.raises(ValueError):
+        Box((0.0,), (math.inf,))
+
+
+@pytest.mark.parametrize("kwargs", [{"particles": 0}, {"iterations": 0}, {"c1": -1.0}, {"velocity_clamp": 0.0}])
+def test_pso_settings_are_validated(kwargs: dict) -> None:
+    with pytest.raises(ValueError):
+        PsoSettings(**kwargs)
+
+
+@pytest.mark.parametrize("kwargs", [{"chaos_radius": 0.0}, {"chaos_steps": -1}, {"stagnation_tolerance": -1.0}])
+def test_ipso_settings_are_validated(kwargs: dict) -> None:
+    with pytest.raises(ValueError):
+        IpsoSettings(**kwargs)
+
+
+def test_paper_defaults() -> None:
+    s = IpsoSettings()
+    assert (s.particles, s.iterations, s.c1, s.c2, s.c3) == (20, 40, 1.0, 1.5, 2.0)
+    assert (s.chaos_steps, s.stagnation_iterations, s.radius_decay, s.stagnation_tolerance) == (10, 5, 4.0, 1e-6)
+    assert inertia(s, 0.0) == pytest.approx(0.9) and inertia(s, 1.0) == pytest.approx(0.4)
+    assert isinstance(settings_for("pso"), PsoSettings) and not isinstance(settings_for("pso"), IpsoSettings)
+    with pytest.raises(ValueError):
+        settings_for("foo")
+
+
+def test_detection_radius_eq17_shrinks_to_the_centre() -> None:
+    box = Box((0.0, -10.0), (2.0, 10.0))
+    u = np.random.default_rng(0).random((1000, 2))
+    early, late = detection_radius(box, 0.0, 4.0, u), detection_radius(box, 1.0, 4.0, u)
+    assert np.all(early >= box.low - 1e-12) and np.all(early <= box.high + 1e-12)
+    assert np.ptp(early[:, 1]) > 19.0  # t = 0: anywhere in the box
+    assert np.max(np.abs(late - [1.0, 0.0])) <= math.exp(-4.0) * 10.0 + 1e-12  # t = 1: e^-lambda of the half width
+
+
+def test_logistic_map_eq19() -> None:
+    y = np.array([0.1, 0.3, 0.7])
+    np.testing.assert_allclose(logistic_map(y), 4.0 * y * (1.0 - y))
+    for _ in range(100):
+        y = logistic_map(y)
+        assert np.all((y >= 0.0) & (y <= 1.0))
+
+
+# --------------------------------------------------------------------------- behaviour
+
+
+@pytest.mark.parametrize("algorithm", ["ipso", "pso"])
+def test_reproducible_with_a_seed(algorithm: str) -> None:
+    settings = settings_for(algorithm, iterations=15)
+    a = minimize(rastrigin, RASTRIGIN_BOX, settings, 7)
+    b = minimize(rastrigin, RASTRIGIN_BOX, settings, np.random.default_rng(7))
+    c = minimize(rastrigin, RASTRIGIN_BOX, settings, 8)
+    np.testing.assert_array_equal(a.position, b.position)
+    assert a.fitness == b.fitness and a.history == b.history and a.evaluations == b.evaluations
+    assert c.fitness != a.fitness
+
+
+@pytest.mark.parametrize("algorithm", ["ipso", "pso"])
+def test_box_respected_and_evaluations_counted(algorithm: str) -> None:
+    box = Box((0.0, -3.0, 10.0), (1.0, 3.0, 20.0))
+    recorder = Recorder(plateau)
+    result = minimize(recorder, box, settings_for(algorithm, particles=8, iterations=30), 3)
+    points = recorder.all_points
+    assert np.all(points >= box.low) and np.all(points <= box.high)
+    assert result.evaluations == recorder.count
+    assert result.history[-1].evaluations == result.evaluations
+    assert np.all(result.position >= box.low) and np.all(result.position <= box.high)
+
+
+def test_stagnation_triggers_the_chaotic_search() -> None:
+    recorder = Recorder(plateau)
+    box = Box.cube(3, 0.0, 1.0)
+    settings = IpsoSettings(particles=6, iterations=20, c3=0.0)
+    result = minimize(recorder, box, settings, 1)
+    chaotic = sum(h.chaotic_particles for h in result.history)
+    assert chaotic > 0
+    assert result.evaluations > settings.particles * (settings.iterations + 1)  # chaotic steps count
+    assert result.evaluations <= settings.particles * (settings.iterations + 1) + chaotic * settings.chaos_steps
+    no_chaos = minimize(Recorder(plateau), box, IpsoSettings(particles=6, iterations=20, c3=0.0, chaos_steps=0), 1)
+    assert no_chaos.evaluations == settings.particles * (settings.iterations + 1)
+
+
+def test_chaotic_candidates_lie_within_r_d_of_the_particle() -> None:
+    """With the swarm frozen (w = c1 = c2 = c3 = 0), every later point is a chaotic candidate (eq. 20)."""
+    box = Box((0.0, 0.0), (1.0, 10.0))
+    settings = IpsoSettings(particles=4, iterations=12, c1=0.0, c2=0.0, c3=0.0, inertia_start=0.0,
+                            inertia_end=0.0, chaos_radius=0.05, stagnation_iterations=2)
+    recorder = Recorder(lambda x: np.zeros(len(np.atleast_2d(x))))
+    result = minimize(recorder, box, settings, 4)
+    initial = recorder.points[0]
+    later = np.vstack(recorder.points[1:])
+    assert sum(h.chaotic_particles for h in result.history) > 0
+    distance = np.min(np.max(np.abs(later[:, None, :] - initial[None, :, :]) / box.width, axis=2), axis=1)
+    assert np.all(distance <= 0.05 + 1e-12)
+    assert np.any(distance > 0.0)  # and the search does move
+
+
+def test_budget_truncates_exactly_and_pso_for_budget_matches() -> None:
+    ipso = minimize(shifted(ackley, SHIFT), ACKLEY_BOX, IpsoSettings(), 0)
+    budget = ipso.evaluations
+    pso = minimize(shifted(ackley, SHIFT), ACKLEY_BOX, pso_for_budget(budget), 0, max_evaluations=budget)
+    assert pso.evaluations == budget
+    odd = minimize(rastrigin, RASTRIGIN_BOX, IpsoSettings(iterations=100), 0, max_evaluations=333)
+    assert odd.evaluations == 333
+    tiny = minimize(rastrigin, RASTRIGIN_BOX, PsoSettings(), 0, max_evaluations=5)
+    assert tiny.evaluations == 5
+
+
+def test_warm_start_is_never_worse() -> None:
+    start = np.full(6, 0.2)
+    result = minimize(rastrigin, RASTRIGIN_BOX, IpsoSettings(iterations=3), 0, initial=start[None, :])
+    assert result.fitness <= float(rastrigin(start)[0])
+    assert result.history[0].best_fitness <= float(rastrigin(start)[0])
+    assert np.all(np.diff(result.best_curve) <= 0.0)  # gbest never gets worse
+
+
+def test_nan_fitness_counts_as_worst() -> None:
+    def holes(x: np.ndarray) -> np.ndarray:
+        values = rastrigin(x)
+        values[np.atleast_2d(x)[:, 0] > 0] = np.nan
+        return values
+
+    result = minimize(holes, RASTRIGIN_BOX, IpsoSettings(iterations=10), 0)
+    assert math.isfinite(result.fitness) and result.position[0] <= 0.0
+
+
+@pytest.mark.parametrize("name", ["rastrigin", "ackley"])
+def test_ipso_and_pso_beat_random_search_on_equal_budgets(name: str) -> None:
+    """A small version of bench/ipso_vs_pso.py: 5 seeds, optimum shifted off the box centre."""
+    function, box = (rastrigin, RASTRIGIN_BOX) if name == "rastrigin" else (ackley, ACKLEY_BOX)
+    shift = SHIFT if name == "rastrigin" else 5.0 * SHIFT
+    objective = shifted(function, shift)
+    ipso, pso, rand = [], [], []
+    for seed in range(5):
+        a = minimize(objective, box, IpsoSettings(), seed)
+        b = minimize(objective, box, pso_for_budget(a.evaluations), seed, max_evaluations=a.evaluations)
+        c = random_search(objective, box, a.evaluations, seed)
+        assert a.evaluations == b.evaluations == c.evaluations
+        ipso.append(a.fitness)
+        pso.append(b.fitness)
+        rand.append(c.fitness)
+    baseline = float(np.median(rand))
+    assert np.median(ipso) < 0.8 * baseline
+    assert np.median(pso) < 0.8 * baseline
+
+
+# --------------------------------------------------------------------------- the Q/R search space
+
+
+@pytest.mark.parametrize("stiffness_state", ["log", "linear"])
+@pytest.mark.parametrize("measurement", ["heading", "yaw_rate"])
+def test_search_box_holds_the_defaults(stiffness_state: str, measurement: str) -> None:
+    options = FilterOptions(stiffness_state=stiffness_state, measurement=measurement)
+    box = search_box(options)
+    assert box.names == NAMES and box.dimension == 6
+    expected_q = (-10.0, -2.0) if stiffness_state == "log" else (-2.0, 6.0)
+    expected_r2 = (-8.0, -2.0) if measurement == "heading" else (-6.0, -1.0)
+    assert (box.lower[2], box.upper[2]) == expected_q and (box.lower[5], box.upper[5]) == expected_r2
+    assert (box.lower[0], box.upper[0]) == (-8.0, -1.0) and (box.lower[4], box.upper[4]) == (-6.0, -1.0)
+    if stiffness_state == "log" and measurement == "heading":
+        vector = noise_to_vector(NoiseParams())
+        assert np.all(vector >= box.low) and np.all(vector <= box.high)
+
+
+def test_vector_noise_round_trip_keeps_heading_q_and_p0() -> None:
+    base = NoiseParams(heading_process_noise=3.0e-9, initial_covariance=(1e-2, 1e-2, 2.0, 3.0))
+    vector = np.array([-5.0, -4.0, -7.0, -6.5, -3.0, -5.5])
+    noise = vector_to_noise(vector, base)
+    np.testing.assert_allclose(noise.process_noise, 10.0 ** vector[:4])
+    np.testing.assert_allclose(noise.measurement_noise, 10.0 ** vector[4:])
+    assert noise.heading_process_noise == 3.0e-9 and noise.initial_covariance == base.initial_covariance
+    np.testing.assert_allclose(noise_to_vector(noise), vector)
+
+
+@pytest.mark.parametrize("measurement", ["heading", "yaw_rate"])
+def test_candidate_matrices_follow_the_filter_layout(measurement: str) -> None:
+    config = EstimatorConfig(options=FilterOptions(measurement=measurement),
+                             noise=NoiseParams(heading_process_noise=5.0e-9))
+    vector = np.array([[-5.0, -4.0, -7.0, -6.5, -3.0, -5.5]])
+    qs, rs = candidate_matrices(vector, config)
+    arrays = ekf.FilterArrays.from_config(EstimatorConfig(options=config.options,
+                                                          noise=vector_to_noise(vector[0], config.noise)))
+    np.testing.assert_allclose(qs[0], arrays.process_noise)
+    np.testing.assert_allclose(rs[0], arrays.measurement_noise)
+    if measurement == "heading":
+        assert qs.shape == (1, 5) and qs[0, 2] == 5.0e-9
+
+
+@pytest.fixture(scope="module")
+def sine_epochs():  # noqa: ANN201
+    return simulate_epochs(build_config("sine", duration=40.0, seed=5))[1]
+
+
+@pytest.mark.parametrize("options", [FilterOptions(), FilterOptions(measurement="yaw_rate"),
+                                     FilterOptions(discretization="euler", stiffness_state="linear",
+                                                   measurement="yaw_rate")])
+@pytest.mark.parametrize("objective", ["mae", "nll"])
+def test_batch_objective_equals_the_serial_filter(sine_epochs, options: FilterOptions, objective: str) -> None:  # noqa: ANN001
+    """The parallel batch gives exactly ekf.sequence_objective per candidate (also guards a stale numba cache)."""
+    linear = options.stiffness_state == "linear"
+    base = EstimatorConfig(options=options, noise=NoiseParams(
+        process_noise=(1e-4, 1e-4, 100.0, 100.0) if linear else (1e-4, 1e-4, 1e-6, 1e-6),
+        initial_covariance=(1e-2, 1e-2, 1e6, 1e6) if linear else (1e-2, 1e-2, 4.0, 4.0)))
+    problem = TuningProblem.from_epochs(base, sine_epochs, objective)
+    candidates = problem.box.uniform(np.random.default_rng(0), 9)
+    batch = problem(candidates)
+    serial = [ekf.sequence_objective(problem.tuned_config(c), sine_epochs, objective) for c in candidates]
+    np.testing.assert_array_equal(batch, serial)
+    assert np.all(np.isfinite(batch))
+    assert problem.evaluate_noise(base.noise) == ekf.sequence_objective(base, sine_epochs, objective)
+
+
+def test_divergence_gets_a_finite_penalty(sine_epochs) -> None:  # noqa: ANN001
+    config = EstimatorConfig(options=FilterOptions(discretization="euler", stiffness_state="linear",
+                                                   measurement="yaw_rate"))
+    a = ekf.FilterArrays.from_config(config)
+    qs = np.array([[1e-1, 1e-1, 1e12, 1e12]])
+    rs = np.array([[1e-12, 1e-12]])
+    value = batch_objective(sine_epochs.kernel_input(), a.initial_state, a.initial_covariance, a.vehicle,
+                            a.settings, qs, rs, ekf.MAE)[0]
+    assert math.isfinite(value) and 0.0 < value <= ekf.DIVERGENCE_PENALTY
