@@ -33,7 +33,8 @@ from .model import (
     W_E,
     WORK_SIZE,
     WORK_SLOTS,
-    discretize,
+    discretize_heading,
+    discretize_yaw_rate,
     vehicle_array,
     work_buffer,
 )
@@ -81,12 +82,12 @@ class StepStatus(enum.IntEnum):
 
 
 @numba.njit(cache=True)
-def _finite(value):  # noqa: ANN001, ANN202
+def _finite(value):
     return not (math.isnan(value) or math.isinf(value))
 
 
 @numba.njit(cache=True)
-def _wrap(angle):  # noqa: ANN001, ANN202
+def _wrap(angle):
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
@@ -95,7 +96,7 @@ W_F, W_TMP, W_GAIN, W_IKH, W_BACKUP_P, W_VEC = 12, 13, 14, 15, 16, 17
 V_BACKUP_X, V_BACKUP_MODEL, V_NEW_X, V_NEW_MODEL = 0, 1, 2, 3  # rows of ws[W_VEC]
 
 
-def _make_kernels(n):  # noqa: ANN001, ANN202
+def _make_kernels(n):
     """Compile predict/update/step for n states (5: heading mode, 4: yaw_rate mode).
 
     The sizes are compile-time constants, so the small loops unroll; all scratch lives in one
@@ -105,9 +106,10 @@ def _make_kernels(n):  # noqa: ANN001, ANN202
     heading = n == 5
     h1 = 2 if heading else 1  # second measured state: psi or r
     nf, nr = n - 2, n - 1
+    discretize_n = discretize_heading if heading else discretize_yaw_rate
 
     @numba.njit(cache=True, inline='always')
-    def reset_motion(x, p, model, settings, vy, psi, yaw_rate):  # noqa: ANN001, ANN202
+    def reset_motion(x, p, model, settings, vy, psi, yaw_rate):
         """Take the motion states from the measurement; keep the stiffness and its variance."""
         x[0] = vy
         x[1] = yaw_rate
@@ -126,7 +128,7 @@ def _make_kernels(n):  # noqa: ANN001, ANN202
             p[2, 2] = settings[S_P0_PSI]
 
     @numba.njit(cache=True, inline='always')
-    def write_outputs(x, p, settings, status, r_model, vy_model, out):  # noqa: ANN001, ANN202
+    def write_outputs(x, p, settings, status, r_model, vy_model, out):
         out[O_STATUS] = status
         out[O_VY] = x[0]
         out[O_R] = x[1]
@@ -144,7 +146,7 @@ def _make_kernels(n):  # noqa: ANN001, ANN202
         out[O_R_MODEL] = r_model
 
     @numba.njit(cache=True, inline='always')
-    def predict_n(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):  # noqa: ANN001, ANN202
+    def predict_n(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):
         """X <- f(x, u), model <- f(model, u); F = df/dx into ws[W_F]."""
         if settings[S_LOG] > 0.5:
             cf, cr = math.exp(x[nf]), math.exp(x[nr])
@@ -153,7 +155,7 @@ def _make_kernels(n):  # noqa: ANN001, ANN202
             cf, cr = x[nf], x[nr]
             dcf, dcr = 1.0, 1.0
         method = int(settings[S_METHOD])
-        discretize(cf, cr, dcf, dcr, speed, dt, vehicle, heading, method, ws)
+        discretize_n(cf, cr, dcf, dcr, speed, dt, vehicle, method, ws)
         level = steering if method == EULER else steering - 0.5 * dt * steering_rate
         for i in range(n):
             for j in range(n):
@@ -178,7 +180,7 @@ def _make_kernels(n):  # noqa: ANN001, ANN202
             model[i] = ws[W_VEC, V_NEW_MODEL, i]
 
     @numba.njit(cache=True, inline='always')
-    def propagate_covariance(p, q, ws):  # noqa: ANN001, ANN202
+    def propagate_covariance(p, q, ws):
         """P = F P F^T + Q."""
         for i in range(n):
             for j in range(n):
@@ -196,7 +198,7 @@ def _make_kernels(n):  # noqa: ANN001, ANN202
             p[i, i] += q[i]
 
     @numba.njit(cache=True, inline='always')
-    def joseph_update(x, p, r_noise, e0, e1, s00, s01, s11, det, ws):  # noqa: ANN001, ANN202
+    def joseph_update(x, p, r_noise, e0, e1, s00, s01, s11, det, ws):
         """Update: x += K e; P = (I - K H) P (I - K H)^T + K R K^T, H selecting states 0 and h1."""
         i00, i01, i11 = s11 / det, -s01 / det, s00 / det
         for i in range(n):
@@ -225,7 +227,7 @@ def _make_kernels(n):  # noqa: ANN001, ANN202
                 p[j, i] = acc
 
     @numba.njit(cache=True, inline='always')
-    def healthy(x, p, r_model, vy_model, nis):  # noqa: ANN001, ANN202
+    def healthy(x, p, r_model, vy_model, nis):
         for i in range(n):
             if not _finite(x[i]):
                 return False
@@ -235,7 +237,7 @@ def _make_kernels(n):  # noqa: ANN001, ANN202
         return _finite(r_model) and _finite(vy_model) and _finite(nis)
 
     @numba.njit(cache=True)
-    def step_n(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,  # noqa: ANN001, ANN202
+    def step_n(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,
                steering_rate, vy, psi, yaw_rate, ws, out):
         for k in range(N_OUTPUTS):
             out[k] = 0.0
@@ -317,15 +319,61 @@ def _make_kernels(n):  # noqa: ANN001, ANN202
         write_outputs(x, p, settings, status, r_model, vy_model, out)
         return status
 
-    return predict_n, step_n
+    @numba.njit(cache=True)
+    def run_n(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs):
+        """step_n over every row of ``epochs``; one output row per epoch."""
+        ws = np.zeros((WORK_SLOTS, WORK_SIZE, WORK_SIZE))
+        out = np.zeros(N_OUTPUTS)
+        for k in range(epochs.shape[0]):
+            step_n(x, p, model, memo, vehicle, settings, q, r_noise, epochs[k, E_T], epochs[k, E_SPEED],
+                   epochs[k, E_STEERING], epochs[k, E_STEERING_RATE], epochs[k, E_VY], epochs[k, E_PSI],
+                   epochs[k, E_YAW_RATE], ws, out)
+            for j in range(N_OUTPUTS):
+                outputs[k, j] = out[j]
+
+    @numba.njit(cache=True)
+    def objective_n(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind):
+        """Tuning objective over a sequence: eq. 21 mean |innovation| (MAE) or Gaussian NLL.
+
+        Only epochs with a predicted measurement (UPDATED or GATED) count. A diverging filter, or
+        one that never predicts, scores DIVERGENCE_PENALTY.
+        """
+        ws = np.zeros((WORK_SLOTS, WORK_SIZE, WORK_SIZE))
+        out = np.zeros(N_OUTPUTS)
+        total = 0.0
+        count = 0
+        for k in range(epochs.shape[0]):
+            status = step_n(x, p, model, memo, vehicle, settings, q, r_noise, epochs[k, E_T], epochs[k, E_SPEED],
+                            epochs[k, E_STEERING], epochs[k, E_STEERING_RATE], epochs[k, E_VY], epochs[k, E_PSI],
+                            epochs[k, E_YAW_RATE], ws, out)
+            if status == 8:
+                return DIVERGENCE_PENALTY
+            if status > 1:
+                continue
+            if kind == MAE:
+                total += abs(out[O_E0]) + abs(out[O_E1])
+            else:
+                det = out[O_S00] * out[O_S11] - out[O_S01] * out[O_S01]
+                if det <= 0.0:
+                    return DIVERGENCE_PENALTY
+                total += 0.5 * (out[O_NIS] + math.log(det)) + math.log(2.0 * math.pi)
+            count += 1
+        if count == 0:
+            return DIVERGENCE_PENALTY
+        value = total / count
+        if not _finite(value):
+            return DIVERGENCE_PENALTY
+        return min(value, DIVERGENCE_PENALTY)
+
+    return predict_n, step_n, run_n, objective_n
 
 
-_predict_yaw_rate, _step_yaw_rate = _make_kernels(4)
-_predict_heading, _step_heading = _make_kernels(5)
+_predict_yaw_rate, _step_yaw_rate, _run_yaw_rate, _objective_yaw_rate = _make_kernels(4)
+_predict_heading, _step_heading, _run_heading, _objective_heading = _make_kernels(5)
 
 
 @numba.njit(cache=True)
-def predict(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):  # noqa: ANN001, ANN201
+def predict(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):
     """Prediction of eq. (12) in place: x <- f(x, u), model <- f(model, u); F = df/dx in ws[W_F].
 
     ``steering`` is the interval mean and ``steering_rate`` its slope: ``exact`` drives the ramp
@@ -338,7 +386,7 @@ def predict(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
 
 
 @numba.njit(cache=True)
-def ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,  # noqa: ANN001, ANN201
+def ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,
              steering_rate, vy, psi, yaw_rate, ws, out):
     """Process one epoch in place; return the StepStatus code. ``out`` receives one output row.
 
@@ -356,51 +404,24 @@ def ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steerin
 
 
 @numba.njit(cache=True)
-def run_kernel(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs):  # noqa: ANN001, ANN201
+def run_kernel(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs):
     """Run ekf_step over every row of ``epochs``; one output row per epoch."""
-    ws = np.zeros((WORK_SLOTS, WORK_SIZE, WORK_SIZE))
-    out = np.zeros(N_OUTPUTS)
-    for k in range(epochs.shape[0]):
-        ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, epochs[k, E_T], epochs[k, E_SPEED],
-                 epochs[k, E_STEERING], epochs[k, E_STEERING_RATE], epochs[k, E_VY], epochs[k, E_PSI],
-                 epochs[k, E_YAW_RATE], ws, out)
-        for j in range(N_OUTPUTS):
-            outputs[k, j] = out[j]
+    if x.shape[0] == 5:
+        _run_heading(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs)
+    else:
+        _run_yaw_rate(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs)
 
 
 @numba.njit(cache=True)
-def objective_kernel(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind):  # noqa: ANN001, ANN201
+def objective_kernel(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind):
     """Tuning objective over a sequence: eq. 21 mean |innovation| (MAE) or Gaussian NLL.
 
     Only epochs with a predicted measurement (UPDATED or GATED) count. A diverging filter, or
     one that never predicts, scores DIVERGENCE_PENALTY.
     """
-    ws = np.zeros((WORK_SLOTS, WORK_SIZE, WORK_SIZE))
-    out = np.zeros(N_OUTPUTS)
-    total = 0.0
-    count = 0
-    for k in range(epochs.shape[0]):
-        status = ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, epochs[k, E_T], epochs[k, E_SPEED],
-                          epochs[k, E_STEERING], epochs[k, E_STEERING_RATE], epochs[k, E_VY], epochs[k, E_PSI],
-                          epochs[k, E_YAW_RATE], ws, out)
-        if status == 8:
-            return DIVERGENCE_PENALTY
-        if status > 1:
-            continue
-        if kind == MAE:
-            total += abs(out[O_E0]) + abs(out[O_E1])
-        else:
-            det = out[O_S00] * out[O_S11] - out[O_S01] * out[O_S01]
-            if det <= 0.0:
-                return DIVERGENCE_PENALTY
-            total += 0.5 * (out[O_NIS] + math.log(det)) + math.log(2.0 * math.pi)
-        count += 1
-    if count == 0:
-        return DIVERGENCE_PENALTY
-    value = total / count
-    if not _finite(value):
-        return DIVERGENCE_PENALTY
-    return min(value, DIVERGENCE_PENALTY)
+    if x.shape[0] == 5:
+        return _objective_heading(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind)
+    return _objective_yaw_rate(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind)
 
 
 @dataclass(frozen=True)

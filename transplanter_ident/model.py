@@ -55,8 +55,8 @@ def work_buffer() -> np.ndarray:
     return np.zeros((WORK_SLOTS, WORK_SIZE, WORK_SIZE))
 
 
-@numba.njit(cache=True)
-def continuous_matrix(cf, cr, vx, vehicle, with_heading, ws):  # noqa: ANN001, ANN201
+@numba.njit(cache=True, inline='always')
+def continuous_matrix(cf, cr, vx, vehicle, with_heading, ws):
     """Fill M (eq. 4) and dM/dCf, dM/dCr over [motion states, delta, d delta/dt] in ws.
 
     Size nd + 2 with nd = 3 (vy, r, psi) in heading mode, else 2 (vy, r). The steering angle
@@ -93,12 +93,12 @@ def continuous_matrix(cf, cr, vx, vehicle, with_heading, ws):  # noqa: ANN001, A
         ws[W_M, 2, 1] = 1.0
 
 
-def _make_discretize(nd):  # noqa: ANN001, ANN202
+def _make_discretize(nd):
     """Compile the discretisation for nd motion states (sizes become compile-time constants)."""
     size = nd + 2
 
     @numba.njit(cache=True, inline='always')
-    def mul_top(ws, left, right, out, in00, in01, in11, accumulate):  # noqa: ANN001, ANN202
+    def mul_top(ws, left, right, out, in00, in01, in11, accumulate):
         """ws[out][:nd] (+)= (ws[left] @ ws[right])[:nd]; right's input rows [[in00, in01], [0, in11]]."""
         for i in range(nd):
             for j in range(size):
@@ -115,7 +115,7 @@ def _make_discretize(nd):  # noqa: ANN001, ANN202
                     ws[out, i, j] = acc
 
     @numba.njit(cache=True)
-    def discretize_fixed(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, ws):  # noqa: ANN001, ANN202
+    def discretize_fixed(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, ws):
         continuous_matrix(cf, cr, vx, vehicle, nd == 3, ws)
         for i in range(nd):
             for j in range(size):
@@ -183,12 +183,12 @@ def _make_discretize(nd):  # noqa: ANN001, ANN202
     return discretize_fixed
 
 
-_discretize_yaw_rate = _make_discretize(2)
-_discretize_heading = _make_discretize(3)
+discretize_yaw_rate = _make_discretize(2)
+discretize_heading = _make_discretize(3)
 
 
 @numba.njit(cache=True)
-def discretize(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, with_heading, method, ws):  # noqa: ANN001, ANN201
+def discretize(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, with_heading, method, ws):
     """Discretise eq. (4) over dt: E, dE/dtheta_f, dE/dtheta_r in ws[W_E], ws[W_DE_F], ws[W_DE_R].
 
     x_{k+1} = E[:nd, :nd] x_k + E[:nd, nd] delta_start + E[:nd, nd+1] steering_rate (rows < nd
@@ -197,9 +197,9 @@ def discretize(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, with_heading, me
     ws: :func:`work_buffer`.
     """
     if with_heading:
-        _discretize_heading(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, ws)
+        discretize_heading(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, ws)
     else:
-        _discretize_yaw_rate(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, ws)
+        discretize_yaw_rate(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, ws)
 
 
 def discrete_matrices(
