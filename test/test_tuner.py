@@ -46,7 +46,7 @@ def tuned_run(sample_bags, tmp_path_factory) -> tuple[Path, str, Path]:  # noqa:
     yaml_path, report = out / "tuned.yaml", out / "report"
     result = subprocess.run(
         [sys.executable, "-m", "transplanter_ident.tuner", str(sample_bags["step20-ccw"]), "-o", str(yaml_path),
-         "--params-file", str(DEFAULTS), "--seed", "3", "--report", str(report)],
+         "--params-file", str(DEFAULTS), "--seed", "3", "--objective", "mae", "--report", str(report)],
         capture_output=True, text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=300)
     assert result.returncode == 0, result.stderr
     progress = [line for line in result.stderr.splitlines() if line.startswith("iteration")]
@@ -108,7 +108,7 @@ def test_cli_is_reproducible_with_a_seed(tuned_run, sample_bags, tmp_path, capsy
     yaml_path, _, _ = tuned_run
     again = tmp_path / "again.yaml"
     assert tuner.main([str(sample_bags["step20-ccw"]), "-o", str(again), "--params-file", str(DEFAULTS),
-                       "--seed", "3"]) == 0
+                       "--seed", "3", "--objective", "mae"]) == 0
     strip = lambda p: [line for line in p.read_text().splitlines() if not line.startswith("# bag:")]  # noqa: E731
     assert strip(again) == strip(yaml_path)
 

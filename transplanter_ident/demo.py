@@ -164,13 +164,14 @@ def _run(args: argparse.Namespace) -> int:
     tune_run = load_run(TUNE_BAG, bags, fallback, params)
     print(f"{tune_run.path}: {len(tune_run.epochs)} epochs; starting Q/R from "
           f"{base_files[0] if base_files else 'the built-in defaults'}; objective eq. 21 (mae)")
-    ipso = tune(start, tune_run.epochs, algorithm="ipso", seed=args.seed, on_iteration=progress_printer(40, sys.stdout))
+    ipso = tune(start, tune_run.epochs, algorithm="ipso", objective="mae", seed=args.seed,
+                on_iteration=progress_printer(40, sys.stdout))
     tuned_yaml = out / "tuned.yaml"
     write_params_yaml(tuned_yaml, tuned_parameters(ipso.tuned_config),
                       header_comment(ipso, str(tune_run.path), len(tune_run.epochs)))
     budget = ipso.result.evaluations
-    pso = tune(start, tune_run.epochs, algorithm="pso", seed=args.seed, iterations=pso_for_budget(budget).iterations,
-               max_evaluations=budget)
+    pso = tune(start, tune_run.epochs, algorithm="pso", objective="mae", seed=args.seed,
+               iterations=pso_for_budget(budget).iterations, max_evaluations=budget)
     ipso_nll = tune(start, tune_run.epochs, algorithm="ipso", objective="nll", seed=args.seed)
     tuned_nll_yaml = out / "tuned_nll.yaml"
     write_params_yaml(tuned_nll_yaml, tuned_parameters(ipso_nll.tuned_config),
@@ -209,7 +210,7 @@ def _run(args: argparse.Namespace) -> int:
 
     _section(f"3. The paper's filter (Euler eq. 10, linear stiffness, z = [vy, r]) on {TUNE_BAG}")
     paper_start = replace(start, options=PAPER_OPTIONS, noise=PAPER_NOISE)
-    paper = tune(paper_start, tune_run.epochs, algorithm="ipso", seed=args.seed)
+    paper = tune(paper_start, tune_run.epochs, algorithm="ipso", objective="mae", seed=args.seed)
     paper_cmp = compare(paper, tune_run.epochs)
     unstable = [euler_unstable_fraction(paper_start, tune_run.epochs, o)
                 for o in (paper_cmp.start_outputs, paper_cmp.tuned_outputs)]

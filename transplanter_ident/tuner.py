@@ -79,8 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--params-file", metavar="P.yaml", action="append", default=[],
                         help="base parameters (repeatable, layered; default: built-in = config/estimator.yaml)")
     parser.add_argument("--algorithm", choices=ALGORITHMS, default="ipso", help="optimiser (default ipso)")
-    parser.add_argument("--objective", choices=tuple(OBJECTIVES), default="mae",
-                        help="mae: eq. 21 mean |innovation|; nll: innovation neg. log-likelihood (default mae)")
+    parser.add_argument("--objective", choices=tuple(OBJECTIVES), default="nll",
+                        help="nll: innovation negative log-likelihood (default; more robust, see README); "
+                             "mae: the paper's eq. 21 mean |innovation|")
     parser.add_argument("--particles", metavar="N", type=_count, default=20, help="swarm size F (default 20)")
     parser.add_argument("--iterations", metavar="N", type=_count, default=40, help="iterations k_max (default 40)")
     parser.add_argument("--seed", metavar="N", type=_seed, help="random seed (default: drawn, and recorded in OUT)")
@@ -151,7 +152,7 @@ def load_bag(bag: str, params: EstimatorParams, *, truth: bool = False,
     return data.epochs, data.truth
 
 
-def tune(config: EstimatorConfig, epochs: EpochArrays, *, algorithm: str = "ipso", objective: str = "mae",
+def tune(config: EstimatorConfig, epochs: EpochArrays, *, algorithm: str = "ipso", objective: str = "nll",
          particles: int = 20, iterations: int = 40, seed: int | None = None,
          max_evaluations: int | None = None,
          on_iteration: Callable[[IterationRecord], None] | None = None) -> TuningOutcome:
