@@ -1,0 +1,447 @@
+"""Health of the online estimator: input rates, staleness, gating, convergence, excitation.
+
+The pure logic behind the node's ``/diagnostics`` (DESIGN.md sections 3 and 6), with no ROS
+types: the node feeds :class:`HealthMonitor` with arrival times, rejected samples and the
+filter's estimates, and once a second converts :meth:`HealthMonitor.report` into
+``diagnostic_msgs/DiagnosticStatus`` entries. Levels are those of DiagnosticStatus (OK, WARN,
+ERROR), so a fleet dashboard can aggregate them unchanged.
+
+Times: ``now`` is a monotonic arrival clock in seconds (the node passes ``time.monotonic()``),
+used for rates and staleness; the excitation window runs on epoch (data) time, so it means the
+same online and on a replayed bag.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter, deque
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+from .ekf import Estimate, StepStatus
+from .measurements import Epoch, Rejection
+
+OK, WARN, ERROR = 0, 1, 2
+LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR"}
+INPUTS = ("velocity", "heading", "steering")
+
+#: statuses after which the filter state changed or was propagated (outputs are published)
+PUBLISHED_STATUSES = frozenset({StepStatus.UPDATED, StepStatus.GATED, StepStatus.LOW_SPEED, StepStatus.REVERSING,
+                                StepStatus.INITIALISED, StepStatus.GAP})
+#: statuses where the model was propagated with a measurement (the excitation window counts these)
+MOVING_STATUSES = frozenset({StepStatus.UPDATED, StepStatus.GATED})
+
+
+def should_publish(status: StepStatus) -> bool:
+    """Whether an epoch with this status produces output messages (never REJECTED_* or DIVERGED)."""
+    return status in PUBLISHED_STATUSES
+
+
+@dataclass(frozen=True)
+class HealthThresholds:
+    """Where the levels change (the node's ``diagnostics.*`` parameters)."""
+
+    stale_timeout: float = 1.0  # s without a message: the input is stale (ERROR)
+    window: float = 10.0  # s: recent rejections/gating (arrival time) and excitation (epoch time)
+    converged_rel_std: float = 0.05  # std / C below which Cf and Cr count as converged
+    min_steering_rms: float = 0.02  # rad: RMS steering over the window needed for excitation
+    min_yaw_rate_rms: float = 0.02  # rad/s: RMS yaw rate over the window needed for excitation
+    min_window_epochs: int = 5  # fewer moving epochs in the window: excitation unknown (WARN)
+    rate_window: float = 5.0  # s of arrivals over which input rates are computed
+
+    def __post_init__(self) -> None:
+        for name in ("stale_timeout", "window", "converged_rel_std", "rate_window"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"diagnostics.{name} must be a positive finite number, got {value!r}")
+        for name in ("min_steering_rms", "min_yaw_rate_rms"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"diagnostics.{name} must be a finite number >= 0, got {value!r}")
+        if self.min_window_epochs < 1:
+            raise ValueError(f"diagnostics.min_window_epochs must be >= 1, got {self.min_window_epochs!r}")
+
+
+@dataclass(frozen=True)
+class HealthReport:
+    """One status line for the dashboard (maps 1:1 onto a DiagnosticStatus)."""
+
+    name: str
+    level: int
+    message: str
+    values: tuple[tuple[str, str], ...] = ()
+
+    @property
+    def level_name(self) -> str:
+        return LEVEL_NAMES[self.level]
+
+    def value(self, key: str) -> str:
+        """The value of one key (KeyError if absent)."""
+        return dict(self.values)[key]
+
+
+class TimeWindow:
+    """Event times within the last ``span`` seconds (amortised O(1) per event)."""
+
+    def __init__(self, span: float) -> None:
+        self.span = span
+        self._times: deque[float] = deque()
+
+    def add(self, now: float) -> None:
+        self._times.append(now)
+        self._trim(now)
+
+    def count(self, now: float) -> int:
+        self._trim(now)
+        return len(self._times)
+
+    def times(self, now: float) -> list[float]:
+        self._trim(now)
+        return list(self._times)
+
+    def clear(self) -> None:
+        self._times.clear()
+
+    def _trim(self, now: float) -> None:
+        times = self._times
+        while times and times[0] < now - self.span:
+            times.popleft()
+
+
+class RollingRms:
+    """RMS of (time, value) samples within the last ``span`` seconds of sample time."""
+
+    def __init__(self, span: float) -> None:
+        self.span = span
+        self._samples: deque[tuple[float, float]] = deque()
+        self._sum_sq = 0.0
+
+    def add(self, t: float, value: float) -> None:
+        if self._samples and t < self._samples[-1][0]:
+            self.clear()  # time went backwards (a replayed bag restarted): start over
+        self._samples.append((t, value * value))
+        self._sum_sq += value * value
+        while self._samples[0][0] < t - self.span:
+            self._sum_sq -= self._samples.popleft()[1]
+        if self._sum_sq < 0.0:  # rounding after many subtractions
+            self._sum_sq = math.fsum(v for _, v in self._samples)
+
+    def __len__(self) -> int:
+        return len(self._samples)
+
+    def rms(self) -> float:
+        """The RMS, NaN when empty."""
+        if not self._samples:
+            return math.nan
+        return math.sqrt(max(self._sum_sq, 0.0) / len(self._samples))
+
+    def clear(self) -> None:
+        self._samples.clear()
+        self._sum_sq = 0.0
+
+
+class LatencyStats:
+    """The last ``size`` latencies (s): median and percentiles."""
+
+    def __init__(self, size: int = 1000) -> None:
+        self._values: deque[float] = deque(maxlen=size)
+        self.total = 0
+
+    def add(self, seconds: float) -> None:
+        self._values.append(seconds)
+        self.total += 1
+
+    def __len__(self) -> int:
+        return len(self._values)
+
+    def percentile(self, q: float) -> float:
+        """The q-th percentile (0..100, linear interpolation), NaN when empty."""
+        return percentile(self._values, q)
+
+
+def percentile(values: Iterable[float], q: float) -> float:
+    """The q-th percentile (0..100) with linear interpolation between order statistics; NaN if empty."""
+    data = sorted(values)
+    if not data:
+        return math.nan
+    pos = (len(data) - 1) * min(max(q, 0.0), 100.0) / 100.0
+    low = math.floor(pos)
+    high = min(low + 1, len(data) - 1)
+    return data[low] + (data[high] - data[low]) * (pos - low)
+
+
+class InputMonitor:
+    """Arrivals and rejections of one input topic."""
+
+    def __init__(self, name: str, thresholds: HealthThresholds, start: float) -> None:
+        self.name = name
+        self.start = start
+        self.messages = 0
+        self.last_arrival: float | None = None
+        self.rejected = 0
+        self.last_rejection = ""
+        self._arrivals = TimeWindow(thresholds.rate_window)
+        self._rejections = TimeWindow(thresholds.window)
+
+    def set_thresholds(self, thresholds: HealthThresholds) -> None:
+        self._arrivals.span = thresholds.rate_window
+        self._rejections.span = thresholds.window
+
+    def record(self, now: float) -> None:
+        self.messages += 1
+        self.last_arrival = now
+        self._arrivals.add(now)
+
+    def reject(self, now: float, reason: str) -> None:
+        self.rejected += 1
+        self.last_rejection = reason
+        self._rejections.add(now)
+
+    def rate(self, now: float) -> float:
+        """Messages per second over the rate window (0 when fewer than two)."""
+        times = self._arrivals.times(now)
+        if len(times) < 2 or times[-1] <= times[0]:
+            return 0.0
+        return (len(times) - 1) / (times[-1] - times[0])
+
+    def age(self, now: float) -> float:
+        """Seconds since the last message, or since monitoring started if none yet."""
+        return now - (self.start if self.last_arrival is None else self.last_arrival)
+
+    def recent_rejections(self, now: float) -> int:
+        return self._rejections.count(now)
+
+
+@dataclass
+class _FilterState:
+    statuses: Counter = field(default_factory=Counter)
+    last_status: StepStatus | None = None
+    last_epoch: Epoch | None = None
+    last_estimate: Estimate | None = None
+    updates: int = 0
+    epoch_rejected: int = 0
+    last_epoch_rejection: str = ""
+    unpublished: int = 0  # outputs withheld because a value was not finite
+
+
+class HealthMonitor:
+    """Everything the diagnostics need, fed by the node; :meth:`report` decides the levels."""
+
+    def __init__(self, thresholds: HealthThresholds, now: float, topics: dict[str, str] | None = None) -> None:
+        self.thresholds = thresholds
+        self.topics = dict(topics or {})
+        self.inputs = {name: InputMonitor(name, thresholds, now) for name in INPUTS}
+        self.latency = LatencyStats()
+        self._start = now
+        self._filter = _FilterState()
+        self._steering_rms = RollingRms(thresholds.window)
+        self._yaw_rate_rms = RollingRms(thresholds.window)
+        self._events = {key: TimeWindow(thresholds.window) for key in ("gated", "rejected", "diverged", "epoch")}
+
+    def set_thresholds(self, thresholds: HealthThresholds) -> None:
+        """New thresholds at run time; the windows keep their samples."""
+        self.thresholds = thresholds
+        for monitor in self.inputs.values():
+            monitor.set_thresholds(thresholds)
+        self._steering_rms.span = self._yaw_rate_rms.span = thresholds.window
+        for window in self._events.values():
+            window.span = thresholds.window
+
+    def reset_filter(self) -> None:
+        """Forget the filter's history (after a reset); input statistics carry on."""
+        self._filter = _FilterState()
+        self._steering_rms.clear()
+        self._yaw_rate_rms.clear()
+        for window in self._events.values():
+            window.clear()
+
+    # ------------------------------------------------------------------ feeding
+
+    def on_message(self, topic: str, now: float) -> None:
+        """A message arrived on ``topic`` (velocity, heading or steering)."""
+        self.inputs[topic].record(now)
+
+    def on_rejection(self, rejection: Rejection, now: float) -> None:
+        """A sample (or an epoch) the assembler, or the node's conversion, did not use."""
+        if rejection.topic in self.inputs:
+            self.inputs[rejection.topic].reject(now, rejection.reason)
+        else:
+            self._filter.epoch_rejected += 1
+            self._filter.last_epoch_rejection = rejection.reason
+            self._events["epoch"].add(now)
+
+    def on_estimate(self, epoch: Epoch, estimate: Estimate, now: float) -> None:
+        """The filter processed ``epoch``."""
+        f = self._filter
+        status = estimate.status
+        f.statuses[status] += 1
+        f.last_status = status
+        if status is StepStatus.GATED:
+            self._events["gated"].add(now)
+        elif status in (StepStatus.REJECTED_INVALID, StepStatus.REJECTED_STAMP):
+            self._events["rejected"].add(now)
+        elif status is StepStatus.DIVERGED:
+            self._events["diverged"].add(now)
+        if not should_publish(status):
+            return
+        f.last_epoch = epoch
+        f.last_estimate = estimate
+        if status is StepStatus.UPDATED:
+            f.updates += 1
+        if status in MOVING_STATUSES:
+            self._steering_rms.add(epoch.t, epoch.steering)
+            self._yaw_rate_rms.add(epoch.t, epoch.yaw_rate)
+
+    def on_unpublished(self) -> None:
+        """An output was withheld because it was not finite."""
+        self._filter.unpublished += 1
+
+    def on_latency(self, seconds: float) -> None:
+        self.latency.add(seconds)
+
+    # ------------------------------------------------------------------ levels
+
+    def report(self, now: float) -> list[HealthReport]:
+        """The current status lines: one per input, then motion, measurements, convergence, excitation, latency."""
+        reports = [self._input_report(self.inputs[name], now) for name in INPUTS]
+        reports += [self._motion_report(), self._measurement_report(now), self._convergence_report(),
+                    self._excitation_report(), self._latency_report()]
+        return reports
+
+    def _input_report(self, monitor: InputMonitor, now: float) -> HealthReport:
+        th = self.thresholds
+        age = monitor.age(now)
+        rate = monitor.rate(now) if age <= th.stale_timeout else 0.0
+        recent = monitor.recent_rejections(now)
+        topic = self.topics.get(monitor.name, monitor.name)
+        values = (("topic", topic), ("rate_hz", f"{rate:.2f}"), ("messages", str(monitor.messages)),
+                  ("age_s", f"{age:.3f}" if monitor.last_arrival is not None else "never"),
+                  ("rejected", str(monitor.rejected)), ("rejected_recent", str(recent)),
+                  ("last_rejection", monitor.last_rejection))
+        name = f"estimator: {monitor.name} input"
+        if age > th.stale_timeout:
+            if monitor.last_arrival is None:
+                message = f"stale: no message on {topic} since start ({age:.1f} s)"
+            else:
+                message = f"stale: no message on {topic} for {age:.1f} s (timeout {th.stale_timeout:g} s)"
+            return HealthReport(name, ERROR, message, values)
+        if recent:
+            return HealthReport(name, WARN, f"{recent} rejected in the last {th.window:g} s: {monitor.last_rejection}",
+                                values)
+        if monitor.last_arrival is None:
+            return HealthReport(name, WARN, f"waiting for the first message on {topic}", values)
+        return HealthReport(name, OK, f"{rate:.1f} Hz", values)
+
+    def _motion_report(self) -> HealthReport:
+        f = self._filter
+        name = "estimator: motion"
+        if f.last_epoch is None:
+            return HealthReport(name, WARN, "no GNSS epoch processed yet", (("status", "none"),))
+        speed = f.last_epoch.speed
+        values = (("speed_mps", f"{speed:.3f}"), ("status", f.last_status.name if f.last_status else "none"),
+                  ("low_speed_epochs", str(f.statuses[StepStatus.LOW_SPEED])),
+                  ("reversing_epochs", str(f.statuses[StepStatus.REVERSING])))
+        last = f.last_estimate.status if f.last_estimate else None
+        if last is StepStatus.REVERSING:
+            return HealthReport(name, WARN, f"reversing (vx {speed:.2f} m/s): stiffness held", values)
+        if last is StepStatus.LOW_SPEED:
+            return HealthReport(name, WARN, f"low speed (|vx| {abs(speed):.2f} m/s below min_speed): stiffness held",
+                                values)
+        if last is StepStatus.GAP:
+            return HealthReport(name, WARN, "GNSS gap longer than max_interval: motion states re-initialised", values)
+        return HealthReport(name, OK, f"moving forward at {speed:.2f} m/s", values)
+
+    def _measurement_report(self, now: float) -> HealthReport:
+        f = self._filter
+        th = self.thresholds
+        counts = {key: window.count(now) for key, window in self._events.items()}
+        values = tuple((f"{status.name.lower()}_epochs", str(f.statuses[status])) for status in StepStatus)
+        values += (("gated_recent", str(counts["gated"])), ("rejected_recent", str(counts["rejected"])),
+                   ("diverged_recent", str(counts["diverged"])), ("epochs_dropped", str(f.epoch_rejected)),
+                   ("epochs_dropped_recent", str(counts["epoch"])), ("last_epoch_drop", f.last_epoch_rejection),
+                   ("outputs_withheld", str(f.unpublished)))
+        name = "estimator: measurements"
+        window = f"in the last {th.window:g} s"
+        if counts["diverged"]:
+            return HealthReport(name, ERROR, f"{counts['diverged']} filter step(s) diverged and were rolled back "
+                                f"{window}", values)
+        problems = []
+        if counts["gated"]:
+            problems.append(f"{counts['gated']} gated by the innovation test")
+        if counts["rejected"]:
+            problems.append(f"{counts['rejected']} epoch(s) rejected by the filter")
+        if counts["epoch"]:
+            problems.append(f"{counts['epoch']} epoch(s) dropped: {f.last_epoch_rejection}")
+        if problems:
+            return HealthReport(name, WARN, "; ".join(problems) + f" {window}", values)
+        if f.last_status is None:
+            return HealthReport(name, OK, "no epoch yet", values)
+        return HealthReport(name, OK, "measurements accepted", values)
+
+    def _convergence_report(self) -> HealthReport:
+        f = self._filter
+        name = "estimator: convergence"
+        est = f.last_estimate
+        if est is None:
+            return HealthReport(name, WARN, "no estimate yet", (("converged", "false"),))
+        cf, cr = est.cornering_stiffness_front, est.cornering_stiffness_rear
+        rel_f = est.cornering_stiffness_front_std / cf if cf > 0.0 else math.inf
+        rel_r = est.cornering_stiffness_rear_std / cr if cr > 0.0 else math.inf
+        limit = self.thresholds.converged_rel_std
+        converged = f.updates > 0 and rel_f <= limit and rel_r <= limit
+        values = (("converged", str(converged).lower()), ("cf", f"{cf:.1f}"), ("cr", f"{cr:.1f}"),
+                  ("cf_rel_std", f"{rel_f:.4f}"), ("cr_rel_std", f"{rel_r:.4f}"), ("threshold", f"{limit:g}"),
+                  ("updates", str(f.updates)))
+        if converged:
+            return HealthReport(name, OK, f"converged: Cf {cf:.0f} +- {100 * rel_f:.1f} %, "
+                                f"Cr {cr:.0f} +- {100 * rel_r:.1f} %", values)
+        if f.updates == 0:
+            return HealthReport(name, WARN, "no stiffness update yet", values)
+        return HealthReport(name, WARN, f"not converged: relative std Cf {100 * rel_f:.1f} %, Cr {100 * rel_r:.1f} % "
+                            f"(threshold {100 * limit:g} %)", values)
+
+    def _excitation_report(self) -> HealthReport:
+        th = self.thresholds
+        steer, yaw = self._steering_rms.rms(), self._yaw_rate_rms.rms()
+        count = len(self._steering_rms)
+        name = "estimator: excitation"
+        values = (("steering_rms_rad", f"{steer:.4f}"), ("yaw_rate_rms_radps", f"{yaw:.4f}"),
+                  ("window_epochs", str(count)), ("min_steering_rms", f"{th.min_steering_rms:g}"),
+                  ("min_yaw_rate_rms", f"{th.min_yaw_rate_rms:g}"))
+        if count < th.min_window_epochs:
+            return HealthReport(name, WARN, f"too few moving epochs in the last {th.window:g} s ({count})", values)
+        short = []
+        if steer < th.min_steering_rms:
+            short.append(f"steering RMS {steer:.3f} rad < {th.min_steering_rms:g}")
+        if yaw < th.min_yaw_rate_rms:
+            short.append(f"yaw-rate RMS {yaw:.3f} rad/s < {th.min_yaw_rate_rms:g}")
+        if short:
+            return HealthReport(name, WARN, "insufficient excitation: " + ", ".join(short), values)
+        return HealthReport(name, OK, f"sufficient: steering RMS {steer:.3f} rad, yaw-rate RMS {yaw:.3f} rad/s", values)
+
+    def _latency_report(self) -> HealthReport:
+        lat = self.latency
+        values = (("epochs", str(lat.total)), ("median_ms", f"{1e3 * lat.percentile(50):.3f}"),
+                  ("p99_ms", f"{1e3 * lat.percentile(99):.3f}"), ("max_ms", f"{1e3 * lat.percentile(100):.3f}"))
+        if not len(lat):
+            return HealthReport("estimator: latency", OK, "no epoch yet", values)
+        return HealthReport("estimator: latency", OK, f"GNSS arrival to publish: median "
+                            f"{1e3 * lat.percentile(50):.2f} ms, p99 {1e3 * lat.percentile(99):.2f} ms", values)
+
+
+class Throttle:
+    """Allow one log line per key every ``period`` seconds; counts what was suppressed."""
+
+    def __init__(self, period: float = 5.0) -> None:
+        self.period = period
+        self._last: dict[object, float] = {}
+        self._suppressed: Counter = Counter()
+
+    def allow(self, key: object, now: float) -> tuple[bool, int]:
+        """(log now?, how many were suppressed since the last line for this key)."""
+        last = self._last.get(key)
+        if last is not None and now - last < self.period:
+            self._suppressed[key] += 1
+            return False, 0
+        self._last[key] = now
+        return True, self._suppressed.pop(key, 0)
