@@ -17,6 +17,7 @@ from transplanter_ident.measurements import (
     EpochAssembler,
     assemble,
     interval_line,
+    quaternion_yaw,
     wrap_angle,
 )
 from transplanter_ident.parameters import VehicleParams
@@ -378,3 +379,19 @@ def test_missing_steering_rejects_the_epoch_then_recovers():
     assert all(r.stamp < 2.0 for r in rejections)
     assert len(epochs) >= 9 and all(e.t >= 2.0 for e in epochs)
     assert all(e.steering == pytest.approx(0.05) for e in epochs)
+
+
+def test_heading_quaternions_are_checked_before_conversion() -> None:
+    """Non-finite and zero-norm orientations are rejected with their reason; valid ones give their yaw."""
+    assembler = EpochAssembler(AssemblerSettings())
+    assert assembler.add_heading_quaternion(1.0, 0.0, 0.0, math.inf, 1.0) == []
+    assert assembler.add_heading_quaternion(1.1, 0.0, 0.0, 0.0, 0.0) == []
+    reasons = [r.reason for r in assembler.drain_rejections()]
+    assert reasons[0].startswith("non-finite orientation quaternion")
+    assert reasons[1] == "orientation quaternion of zero norm"
+    assert math.isnan(quaternion_yaw(0.0, 0.0, 0.0, 0.0)) and math.isnan(quaternion_yaw(0.0, 0.0, math.nan, 1.0))
+    yaw = 2.5
+    assert quaternion_yaw(0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)) == pytest.approx(yaw, abs=1e-12)
+    assembler.add_velocity(2.0, 1.0, 0.0)
+    assembler.add_heading_quaternion(2.0, 0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))
+    assert assembler.drain_rejections() == []

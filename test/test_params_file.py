@@ -318,3 +318,16 @@ def test_written_file_is_accepted_by_rcl_parser(tmp_path: Path) -> None:
     assert file_keys <= set(layered)
     for key in file_keys:
         assert layered[key]["value"] == expected[key], key
+
+
+def test_node_only_message_type_keys_are_accepted_offline(tmp_path) -> None:  # noqa: ANN001
+    """A params file written for the node (with topics.*_type) loads in replay and tuner too."""
+    path = tmp_path / "node.yaml"
+    path.write_text("estimator:\n  ros__parameters:\n    topics:\n      velocity_type: TwistWithCovarianceStamped\n"
+                    "      velocity: /fix/vel\n")
+    params = load_params([path])
+    assert params.topics.velocity == "/fix/vel"
+    assert params.extra["topics.velocity_type"] == "TwistWithCovarianceStamped"
+    path.write_text("estimator:\n  ros__parameters:\n    topics:\n      velocty: /typo\n")
+    with pytest.raises(ParamsError, match="topics.velocty"):
+        load_params([path])

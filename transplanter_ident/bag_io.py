@@ -40,7 +40,15 @@ from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 
 from .cli_util import Progress, atomic_output_dir, one_line
-from .measurements import AssemblerSettings, EpochArrays, EpochAssembler, Rejection, assemble
+from .measurements import (
+    AssemblerSettings,
+    EpochArrays,
+    EpochAssembler,
+    Rejection,
+    assemble,
+    quaternion_yaw,
+    stamp_seconds,
+)
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
@@ -91,11 +99,6 @@ def to_ns(t: float) -> int:
     return int(round(t * 1e9))
 
 
-def quaternion_yaw(x: float, y: float, z: float, w: float) -> float:
-    """Yaw (rotation about z) of a quaternion."""
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-
-
 def yaw_quaternion(yaw: float) -> tuple[float, float, float, float]:
     """(x, y, z, w) of a pure rotation by ``yaw`` about z."""
     return 0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)
@@ -124,7 +127,7 @@ Extractor = Callable[[Any, int, str], tuple[float, tuple[float, ...]]]
 def _stamp(msg: Any, log_ns: int) -> float:
     """``header.stamp`` in seconds, or the log time when the stamp is zero (unset)."""
     stamp = msg.header.stamp
-    return seconds((stamp.sec * NS_PER_S + stamp.nanosec) or log_ns)
+    return stamp_seconds(stamp.sec, stamp.nanosec) if (stamp.sec or stamp.nanosec) else seconds(log_ns)
 
 
 def _from_twist(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:

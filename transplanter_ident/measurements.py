@@ -86,6 +86,18 @@ def wrap_angle(angle: float) -> float:
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
+def stamp_seconds(sec: int, nanosec: int) -> float:
+    """A ROS time (sec, nanosec) in seconds, via integer nanoseconds (node and bag reader alike)."""
+    return (sec * 1_000_000_000 + nanosec) / 1e9
+
+
+def quaternion_yaw(x: float, y: float, z: float, w: float) -> float:
+    """Yaw (rotation about z) of an orientation quaternion; NaN if it is non-finite or of zero norm."""
+    if not all(math.isfinite(c) for c in (x, y, z, w)) or x * x + y * y + z * z + w * w < 1e-12:
+        return math.nan
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
 def heading_to_enu_yaw(heading: float, frame: str) -> float:
     """ENU yaw from an ENU yaw (``enu``) or a compass heading, clockwise from north (``ned``)."""
     return heading if frame == "enu" else math.pi / 2.0 - heading
@@ -219,6 +231,14 @@ class EpochAssembler:
         self._heading.append((stamp, heading_to_enu_yaw(heading, self.settings.heading_frame)))
         return self._match()
 
+    def add_heading_quaternion(self, stamp: float, x: float, y: float, z: float, w: float) -> list[Epoch]:
+        """A GNSS heading given as an orientation quaternion (QuaternionStamped, Imu)."""
+        if not all(math.isfinite(c) for c in (x, y, z, w)):
+            return self._reject("heading", stamp, f"non-finite orientation quaternion {(x, y, z, w)}")
+        if x * x + y * y + z * z + w * w < 1e-12:
+            return self._reject("heading", stamp, "orientation quaternion of zero norm")
+        return self.add_heading(stamp, quaternion_yaw(x, y, z, w))
+
     def add_steering(self, stamp: float, angle: float) -> list[Epoch]:
         """A front steering angle sample, rad, positive to the left."""
         if not (math.isfinite(stamp) and math.isfinite(angle)):
@@ -286,9 +306,12 @@ class EpochAssembler:
 
 
 def assemble(assembler: EpochAssembler, samples: Iterable[tuple[str, float, tuple[float, ...]]]) -> list[Epoch]:
-    """Feed (topic, stamp, values) samples in order; return the epochs (offline use)."""
+    """Feed (topic, stamp, values) samples in order; return the epochs (offline use).
+
+    topic: velocity (v1, v2), heading (yaw,), heading_quaternion (x, y, z, w) or steering (angle,).
+    """
     adders = {"velocity": assembler.add_velocity, "heading": assembler.add_heading,
-              "steering": assembler.add_steering}
+              "heading_quaternion": assembler.add_heading_quaternion, "steering": assembler.add_steering}
     epochs: list[Epoch] = []
     for topic, stamp, values in samples:
         epochs.extend(adders[topic](stamp, *values))

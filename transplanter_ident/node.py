@@ -52,7 +52,7 @@ from std_srvs.srv import Trigger
 
 from .ekf import Estimate, JointEKF
 from .health import HealthMonitor, HealthReport, HealthThresholds, Throttle, should_publish
-from .measurements import AssemblerSettings, Epoch, EpochAssembler, Rejection
+from .measurements import AssemblerSettings, Epoch, EpochAssembler, Rejection, stamp_seconds
 from .params_file import EstimatorParams, ParamsError, flat_to_params, params_to_flat
 
 NODE_NAME = "estimator"
@@ -207,16 +207,6 @@ def assembler_settings(params: EstimatorParams) -> AssemblerSettings:
                              max_steering=vehicle.max_steering)
 
 
-def yaw_from_quaternion(x: float, y: float, z: float, w: float) -> float:
-    """Rotation about z (rad) of an orientation quaternion (ZYX Euler yaw); NaN in, NaN out."""
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-
-
-def stamp_to_seconds(stamp: Time) -> float:
-    """builtin_interfaces/Time -> float seconds, as integer nanoseconds / 1e9 (bag_io.seconds does the same)."""
-    return (stamp.sec * 1_000_000_000 + stamp.nanosec) / 1e9
-
-
 def seconds_to_stamp(t: float) -> Time:
     """Float seconds -> builtin_interfaces/Time (nearest nanosecond)."""
     sec = math.floor(t)
@@ -307,15 +297,7 @@ class EstimatorNode(Node):
     def _on_heading(self, msg: Any, info: dict) -> None:
         self._health.on_message("heading", time.monotonic())
         q = self._orientation_of(msg)
-        stamp = self._stamp(msg.header)
-        components = (q.x, q.y, q.z, q.w)
-        if not all(math.isfinite(c) for c in components):
-            self._reject(Rejection("heading", stamp, f"non-finite orientation quaternion {components}"))
-            return
-        if sum(c * c for c in components) < 1e-12:
-            self._reject(Rejection("heading", stamp, "orientation quaternion of zero norm"))
-            return
-        self._process(self._assembler.add_heading(stamp, yaw_from_quaternion(*components)), info)
+        self._process(self._assembler.add_heading_quaternion(self._stamp(msg.header), q.x, q.y, q.z, q.w), info)
 
     def _on_joint_state(self, msg: JointState) -> None:
         self._health.on_message("steering", time.monotonic())
@@ -343,7 +325,7 @@ class EstimatorNode(Node):
         """header.stamp in seconds; an unset (zero) stamp means the arrival time, as bag_io uses the log time."""
         if header.stamp.sec == 0 and header.stamp.nanosec == 0:
             return self._now()
-        return stamp_to_seconds(header.stamp)
+        return stamp_seconds(header.stamp.sec, header.stamp.nanosec)
 
     def _now(self) -> float:
         """The node clock (ROS time: the /clock of a replayed bag with use_sim_time), s."""

@@ -161,17 +161,22 @@ def _build(cls: type, values: Mapping[str, Any]) -> Any:
         raise ParamsError(message, message.split(" ", 1)[0]) from None
 
 
+#: keys only the node reads (the input message types); offline drivers accept and ignore them
+NODE_ONLY_KEYS = ("topics.velocity_type", "topics.heading_type", "topics.steering_type")
+
+
 def flat_to_params(flat: Mapping[str, Any]) -> EstimatorParams:
     """Build validated parameters from flat dotted keys; missing keys keep their defaults.
 
     Unknown keys under a known namespace (``ekf.``, ``vehicle.``, ``topics.``, ``frames.``,
-    ``steering.``) are errors, to catch typos; keys of other namespaces go to ``extra``.
+    ``steering.``) are errors, to catch typos; keys of other namespaces, and the node's own
+    ``topics.*_type`` message-type choices, go to ``extra``.
     """
     sections: dict[str, dict[str, Any]] = {ns: {} for ns in _SECTIONS}
     extra: dict[str, Any] = {}
     for key, value in flat.items():
         namespace, _, name = key.partition(".")
-        if namespace not in _SECTIONS:
+        if namespace not in _SECTIONS or key in NODE_ONLY_KEYS:
             extra[key] = value
             continue
         if key not in KNOWN_KEYS:
