@@ -206,7 +206,7 @@ def test_unwritable_output_at_write_time_is_one_line(sample_bags, tmp_path, caps
     def refuse(*args, dir=None, **kwargs):  # noqa: ANN002, ANN003, ANN202, A002
         raise PermissionError(13, "Permission denied", str(dir))
 
-    monkeypatch.setattr("transplanter_ident.params_file.tempfile.mkstemp", refuse)
+    monkeypatch.setattr("transplanter_ident.cli_util.tempfile.mkstemp", refuse)
     target = tmp_path / "o.yaml"
     assert tuner.main([str(sample_bags["step20-ccw"]), "-o", str(target), "--particles", "2", "--iterations", "1"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
@@ -222,7 +222,7 @@ def test_failed_write_leaves_no_half_written_yaml(sample_bags, tmp_path, capsys,
     def broken_replace(src, dst) -> None:  # noqa: ANN001
         raise OSError(28, "No space left on device", str(dst))
 
-    monkeypatch.setattr("transplanter_ident.params_file.os.replace", broken_replace)
+    monkeypatch.setattr("transplanter_ident.cli_util.os.replace", broken_replace)
     assert tuner.main([str(sample_bags["step20-ccw"]), "-o", str(target), "--particles", "2", "--iterations", "1"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     errors = [line for line in err if "error" in line]

@@ -22,6 +22,7 @@ No ROS and no numerics here; every CLI uses the same three pieces:
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import os
 import shutil
@@ -85,6 +86,13 @@ def run_cli(prog: str, body: Callable[[], int | None], *, debug: bool = False,
             traceback.print_exc(file=err)
         print(f"{prog}: error: {_describe(exc)}", file=err)
         return EXIT_FAILURE
+
+
+def cli_main(parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace], int | None],
+             argv: list[str] | None = None) -> int:
+    """Parse ``argv`` and run ``run(args)`` under :func:`run_cli` (the parser has ``--debug``)."""
+    args = parser.parse_args(argv)
+    return run_cli(parser.prog, lambda: run(args), debug=args.debug)
 
 
 # --------------------------------------------------------------------------- atomic output

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from .cli_util import CliError, atomic_write_text, run_cli
+from .cli_util import CliError, atomic_write_text, cli_main
 from .ekf import O_CF, O_CR, O_STATUS, StepStatus, run_sequence
 from .measurements import EpochArrays
 from .metrics import format_table2, stiffness_error
@@ -259,9 +259,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m transplanter_ident.demo``."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    return run_cli(parser.prog, lambda: _run(args), debug=args.debug)
+    return cli_main(build_parser(), _run, argv)
 
 
 if __name__ == "__main__":

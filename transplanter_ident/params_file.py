@@ -23,9 +23,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import re
-import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,7 +31,8 @@ from typing import Any
 
 import yaml
 
-from transplanter_ident.parameters import EstimatorConfig, FilterOptions, NoiseParams, VehicleParams
+from .cli_util import atomic_write_text
+from .parameters import EstimatorConfig, FilterOptions, NoiseParams, VehicleParams
 
 FRAMES = ("enu", "ned")
 WILDCARD = "/**"
@@ -361,17 +360,4 @@ def write_params_yaml(
     flow style. On any failure the temp file is removed and the target is left untouched.
     """
     flat_to_params(flat)
-    text = dump_params_yaml(flat, header_comment, node_name)
-    target = Path(path)
-    mode = target.stat().st_mode & 0o777 if target.is_file() else 0o644
-    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as handle:
-            os.fchmod(handle.fileno(), mode)
-            handle.write(text)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write_text(path, dump_params_yaml(flat, header_comment, node_name))

@@ -21,7 +21,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from transplanter_ident.cli_util import CliError, atomic_output_file, run_cli
+from transplanter_ident.cli_util import CliError, atomic_output_file, cli_main
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -124,9 +124,7 @@ def _run(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `replay` console script."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    return run_cli(parser.prog, lambda: _run(args), debug=args.debug)
+    return cli_main(build_parser(), _run, argv)
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from transplanter_ident.cli_util import CliError, run_cli
+from transplanter_ident.cli_util import CliError, cli_main
 from transplanter_ident.scenarios import DEFAULT_SCENARIO, SCENARIOS
 
 
@@ -106,9 +106,7 @@ def _run(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `simulate` console script."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    return run_cli(parser.prog, lambda: _run(args), debug=args.debug)
+    return cli_main(build_parser(), _run, argv)
 
 
 if __name__ == "__main__":

@@ -31,7 +31,7 @@ from typing import Any, NoReturn
 
 import numpy as np
 
-from .cli_util import CliError, run_cli
+from .cli_util import CliError, cli_main
 from .ekf import run_sequence
 from .measurements import EpochArrays
 from .metrics import Table2Row, format_table2, table2_row
@@ -274,9 +274,7 @@ def _run(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``tuner`` executable."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    return run_cli(parser.prog, lambda: _run(args), debug=args.debug)
+    return cli_main(build_parser(), _run, argv)
 
 
 if __name__ == "__main__":
