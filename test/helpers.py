@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 from transplanter_ident.measurements import AssemblerSettings, Epoch, EpochArrays, EpochAssembler, assemble
 from transplanter_ident.parameters import EstimatorConfig, FilterOptions, NoiseParams, VehicleParams
@@ -67,3 +71,18 @@ def paper_config(vehicle: VehicleParams = TABLE1_VEHICLE) -> EstimatorConfig:
         ),
     )
 
+
+
+def command(name: str) -> list[str]:
+    """The console script in this venv if installed, else ``python -m``."""
+    script = Path(sys.executable).parent / name
+    return [str(script)] if script.exists() else [sys.executable, "-m", f"transplanter_ident.{name}"]
+
+
+def run_command(name: str, *args: object) -> subprocess.CompletedProcess:
+    """Run one of the package's executables from the repository root; output captured as text."""
+    root = Path(__file__).resolve().parents[1]
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(root), env.get("PYTHONPATH", "")]))
+    return subprocess.run(command(name) + [str(a) for a in args], capture_output=True, text=True, timeout=600,
+                          env=env, cwd=root)

@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import csv
 import math
-import os
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import run_command as run
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from rosbags.rosbag2 import Reader, StoragePlugin
@@ -26,19 +25,6 @@ ROOT = Path(__file__).resolve().parents[1]
 TS = get_typestore(Stores.ROS2_JAZZY)  # independent of bag_io's own typestore object
 T = TS.types
 TOLERANCE = 0.06  # the foundation's identification tolerance, each of Cf and Cr
-
-
-def command(name: str) -> list[str]:
-    """The console script in this venv if installed, else ``python -m``."""
-    script = Path(sys.executable).parent / name
-    return [str(script)] if script.exists() else [sys.executable, "-m", f"transplanter_ident.{name}"]
-
-
-def run(name: str, *args: object) -> subprocess.CompletedProcess:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH", "")]))
-    return subprocess.run(command(name) + [str(a) for a in args], capture_output=True, text=True, timeout=600,
-                          env=env, cwd=ROOT)
 
 
 def read_csv(path: Path) -> tuple[list[str], np.ndarray]:

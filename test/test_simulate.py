@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import math
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import run_command as run
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
@@ -18,19 +16,6 @@ from transplanter_ident.sim import SimConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 TS = get_typestore(Stores.ROS2_JAZZY)
-
-
-def command(name: str) -> list[str]:
-    """The console script in this venv if installed, else ``python -m``."""
-    script = Path(sys.executable).parent / name
-    return [str(script)] if script.exists() else [sys.executable, "-m", f"transplanter_ident.{name}"]
-
-
-def run(name: str, *args: object) -> subprocess.CompletedProcess:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH", "")]))
-    return subprocess.run(command(name) + [str(a) for a in args], capture_output=True, text=True, timeout=600,
-                          env=env, cwd=ROOT)
 
 
 def topics(bag: Path) -> dict[str, tuple[str, int]]:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import numba
 import numpy as np
@@ -371,22 +372,79 @@ def _make_kernels(n):
 _predict_yaw_rate, _step_yaw_rate, _run_yaw_rate, _objective_yaw_rate = _make_kernels(4)
 _predict_heading, _step_heading, _run_heading, _objective_heading = _make_kernels(5)
 
+# Module-level entry points, one per state size: numba caches a function on disk only when it
+# captures no compiled function in a closure, and a top-level entry caches its callees with it.
+
 
 @numba.njit(cache=True)
-def predict(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):
+def _predict_4(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):  # noqa: ANN001, ANN202
+    _predict_yaw_rate(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
+
+
+@numba.njit(cache=True)
+def _predict_5(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):  # noqa: ANN001, ANN202
+    _predict_heading(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
+
+
+@numba.njit(cache=True)
+def _step_4(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,  # noqa: ANN001, ANN202
+            steering_rate, vy, psi, yaw_rate, ws, out):
+    return _step_yaw_rate(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering, steering_rate,
+                          vy, psi, yaw_rate, ws, out)
+
+
+@numba.njit(cache=True)
+def _step_5(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,  # noqa: ANN001, ANN202
+            steering_rate, vy, psi, yaw_rate, ws, out):
+    return _step_heading(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering, steering_rate,
+                         vy, psi, yaw_rate, ws, out)
+
+
+@numba.njit(cache=True)
+def _run_4(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs):  # noqa: ANN001, ANN202
+    _run_yaw_rate(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs)
+
+
+@numba.njit(cache=True)
+def _run_5(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs):  # noqa: ANN001, ANN202
+    _run_heading(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs)
+
+
+@numba.njit(cache=True)
+def objective_4(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind):  # noqa: ANN001, ANN201
+    """objective_kernel for the 4-state (yaw_rate) filter; callable from compiled code."""
+    return _objective_yaw_rate(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind)
+
+
+@numba.njit(cache=True)
+def objective_5(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind):  # noqa: ANN001, ANN201
+    """objective_kernel for the 5-state (heading) filter; callable from compiled code."""
+    return _objective_heading(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind)
+
+
+class Kernels(NamedTuple):
+    """The compiled filter for one state size (numba compiles each lazily, on first call)."""
+
+    predict: Any
+    step: Any
+    run: Any
+    objective: Any
+
+
+#: by state size: 5 = [vy, r, psi, Cf, Cr] (heading), 4 = [vy, r, Cf, Cr] (yaw_rate)
+KERNELS = {4: Kernels(_predict_4, _step_4, _run_4, objective_4), 5: Kernels(_predict_5, _step_5, _run_5, objective_5)}
+
+
+def predict(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):  # noqa: ANN001, ANN201
     """Prediction of eq. (12) in place: x <- f(x, u), model <- f(model, u); F = df/dx in ws[W_F].
 
     ``steering`` is the interval mean and ``steering_rate`` its slope: ``exact`` drives the ramp
     that starts at mean - rate dt / 2, ``euler`` holds the mean. ws: model.work_buffer().
     """
-    if x.shape[0] == 5:
-        _predict_heading(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
-    else:
-        _predict_yaw_rate(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
+    KERNELS[x.shape[0]].predict(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
 
 
-@numba.njit(cache=True)
-def ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,
+def ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,  # noqa: ANN001, ANN201
              steering_rate, vy, psi, yaw_rate, ws, out):
     """Process one epoch in place; return the StepStatus code. ``out`` receives one output row.
 
@@ -396,32 +454,22 @@ def ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steerin
     at ``t``, ``steering_rate`` the slope of the steering over it; ``yaw_rate`` is the
     interval-mean yaw rate from heading increments.
     """
-    if x.shape[0] == 5:
-        return _step_heading(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,
-                             steering_rate, vy, psi, yaw_rate, ws, out)
-    return _step_yaw_rate(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,
-                          steering_rate, vy, psi, yaw_rate, ws, out)
+    return KERNELS[x.shape[0]].step(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,
+                                    steering_rate, vy, psi, yaw_rate, ws, out)
 
 
-@numba.njit(cache=True)
-def run_kernel(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs):
-    """Run ekf_step over every row of ``epochs``; one output row per epoch."""
-    if x.shape[0] == 5:
-        _run_heading(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs)
-    else:
-        _run_yaw_rate(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs)
+def run_kernel(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs):  # noqa: ANN001, ANN201
+    """ekf_step over every row of ``epochs`` (columns E_*); one output row per epoch."""
+    KERNELS[x.shape[0]].run(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs)
 
 
-@numba.njit(cache=True)
-def objective_kernel(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind):
+def objective_kernel(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind):  # noqa: ANN001, ANN201
     """Tuning objective over a sequence: eq. 21 mean |innovation| (MAE) or Gaussian NLL.
 
     Only epochs with a predicted measurement (UPDATED or GATED) count. A diverging filter, or
     one that never predicts, scores DIVERGENCE_PENALTY.
     """
-    if x.shape[0] == 5:
-        return _objective_heading(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind)
-    return _objective_yaw_rate(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind)
+    return KERNELS[x.shape[0]].objective(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind)
 
 
 @dataclass(frozen=True)

@@ -38,7 +38,7 @@ from dataclasses import dataclass, replace
 import numba
 import numpy as np
 
-from .ekf import MAE, NLL, FilterArrays, objective_kernel
+from .ekf import MAE, NLL, FilterArrays, objective_4, objective_5, objective_kernel
 from .measurements import EpochArrays
 from .optimize import Box
 from .parameters import EstimatorConfig, FilterOptions, NoiseParams
@@ -91,6 +91,26 @@ def candidate_matrices(positions: np.ndarray, config: EstimatorConfig) -> tuple[
 
 
 @numba.njit(parallel=True, cache=True)
+def _batch_4(epochs, x0, p0, vehicle, settings, qs, rs, kind):  # noqa: ANN001, ANN202
+    values = np.empty(qs.shape[0])
+    for i in numba.prange(qs.shape[0]):
+        values[i] = objective_4(epochs.copy(), x0.copy(), p0.copy(), np.zeros(3), np.zeros(3), vehicle.copy(),
+                                settings.copy(), qs[i].copy(), rs[i].copy(), kind)
+    return values
+
+
+@numba.njit(parallel=True, cache=True)
+def _batch_5(epochs, x0, p0, vehicle, settings, qs, rs, kind):  # noqa: ANN001, ANN202
+    values = np.empty(qs.shape[0])
+    for i in numba.prange(qs.shape[0]):
+        values[i] = objective_5(epochs.copy(), x0.copy(), p0.copy(), np.zeros(3), np.zeros(3), vehicle.copy(),
+                                settings.copy(), qs[i].copy(), rs[i].copy(), kind)
+    return values
+
+
+_BATCH = {4: _batch_4, 5: _batch_5}
+
+
 def batch_objective(epochs, x0, p0, vehicle, settings, qs, rs, kind):  # noqa: ANN001, ANN201
     """objective_kernel for every candidate (row of qs, rs), one candidate per thread.
 
@@ -99,12 +119,7 @@ def batch_objective(epochs, x0, p0, vehicle, settings, qs, rs, kind):  # noqa: A
     and two threads sharing one array contend for that cache line so hard that a second
     thread gained nothing (measured: 2 threads, shared inputs 1.0x, private copies 2.0x).
     """
-    count = qs.shape[0]
-    values = np.empty(count)
-    for i in numba.prange(count):
-        values[i] = objective_kernel(epochs.copy(), x0.copy(), p0.copy(), np.zeros(3), np.zeros(3), vehicle.copy(),
-                                     settings.copy(), qs[i].copy(), rs[i].copy(), kind)
-    return values
+    return _BATCH[x0.shape[0]](epochs, x0, p0, vehicle, settings, qs, rs, kind)
 
 
 @dataclass(frozen=True)
