@@ -60,10 +60,6 @@ class EpochArrays:
     def __getitem__(self, index: int) -> Epoch:
         return Epoch(*map(float, self._data[index]))
 
-    def slice(self, start: int, stop: int) -> EpochArrays:
-        """A contiguous sub-sequence."""
-        return EpochArrays([self[i] for i in range(start, min(stop, len(self)))])
-
     def kernel_input(self) -> np.ndarray:
         """Columns [t, speed, steering, steering_rate, vy, psi, r] for ekf.run_kernel."""
         return np.ascontiguousarray(
@@ -308,10 +304,10 @@ class EpochAssembler:
 def assemble(assembler: EpochAssembler, samples: Iterable[tuple[str, float, tuple[float, ...]]]) -> list[Epoch]:
     """Feed (topic, stamp, values) samples in order; return the epochs (offline use).
 
-    topic: velocity (v1, v2), heading (yaw,), heading_quaternion (x, y, z, w) or steering (angle,).
+    topic: velocity (v1, v2), heading (yaw,) or steering (angle,).
     """
     adders = {"velocity": assembler.add_velocity, "heading": assembler.add_heading,
-              "heading_quaternion": assembler.add_heading_quaternion, "steering": assembler.add_steering}
+              "steering": assembler.add_steering}
     epochs: list[Epoch] = []
     for topic, stamp, values in samples:
         epochs.extend(adders[topic](stamp, *values))
