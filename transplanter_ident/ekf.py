@@ -158,7 +158,7 @@ def _make_kernels(n):
         method = int(settings[S_METHOD])
         discretize_n(cf, cr, dcf, dcr, speed, dt, vehicle, method, ws)
         level = steering if method == EULER else steering - 0.5 * dt * steering_rate
-        for i in range(n):
+        for i in range(nd, n):  # the stiffness rows; the motion rows are all written below
             for j in range(n):
                 ws[W_F, i, j] = 1.0 if i == j else 0.0
         for i in range(nd):
@@ -182,48 +182,51 @@ def _make_kernels(n):
 
     @numba.njit(cache=True, inline='always')
     def propagate_covariance(p, q, ws):
-        """P = F P F^T + Q."""
-        for i in range(n):
+        """P = F P F^T + Q, with F = [[F_motion, F_stiffness], [0, I]] (the stiffness is a random walk)."""
+        for i in range(nd):
             for j in range(n):
                 acc = 0.0
                 for k in range(n):
                     acc += ws[W_F, i, k] * p[k, j]
                 ws[W_TMP, i, j] = acc
-        for i in range(n):
-            for j in range(i, n):
+        for i in range(nd):
+            for j in range(i, nd):
                 acc = 0.0
                 for k in range(n):
                     acc += ws[W_TMP, i, k] * ws[W_F, j, k]
                 p[i, j] = acc
                 p[j, i] = acc
+            for j in range(nd, n):
+                p[i, j] = ws[W_TMP, i, j]
+                p[j, i] = ws[W_TMP, i, j]
+        for i in range(n):
             p[i, i] += q[i]
 
     @numba.njit(cache=True, inline='always')
     def joseph_update(x, p, r_noise, e0, e1, s00, s01, s11, det, ws):
-        """Update: x += K e; P = (I - K H) P (I - K H)^T + K R K^T, H selecting states 0 and h1."""
+        """Update: x += K e; P = (I - K H) P (I - K H)^T + K R K^T, H selecting states 0 and h1.
+
+        The Joseph form is evaluated expanded, P - K HP - (K HP)^T + K S K^T with S = H P H^T + R:
+        the same function of K (so still second-order insensitive to gain errors), in O(n^2).
+        """
         i00, i01, i11 = s11 / det, -s01 / det, s00 / det
         for i in range(n):
-            ws[W_GAIN, i, 0] = p[i, 0] * i00 + p[i, h1] * i01
-            ws[W_GAIN, i, 1] = p[i, 0] * i01 + p[i, h1] * i11
+            hp0, hp1 = p[0, i], p[h1, i]
+            k0 = hp0 * i00 + hp1 * i01
+            k1 = hp0 * i01 + hp1 * i11
+            ws[W_GAIN, 0, i] = k0
+            ws[W_GAIN, 1, i] = k1
+            ws[W_GAIN, 2, i] = hp0
+            ws[W_GAIN, 3, i] = hp1
+            x[i] += k0 * e0 + k1 * e1
         for i in range(n):
-            x[i] += ws[W_GAIN, i, 0] * e0 + ws[W_GAIN, i, 1] * e1
-        for i in range(n):
-            for j in range(n):
-                ws[W_IKH, i, j] = 1.0 if i == j else 0.0
-            ws[W_IKH, i, 0] -= ws[W_GAIN, i, 0]
-            ws[W_IKH, i, h1] -= ws[W_GAIN, i, 1]
-        for i in range(n):
-            for j in range(n):
-                acc = 0.0
-                for k in range(n):
-                    acc += ws[W_IKH, i, k] * p[k, j]
-                ws[W_TMP, i, j] = acc
-        for i in range(n):
+            k0, k1 = ws[W_GAIN, 0, i], ws[W_GAIN, 1, i]
+            hp0, hp1 = ws[W_GAIN, 2, i], ws[W_GAIN, 3, i]
+            ks0 = k0 * s00 + k1 * s01 - hp0
+            ks1 = k0 * s01 + k1 * s11 - hp1
             for j in range(i, n):
-                acc = (ws[W_GAIN, i, 0] * r_noise[0] * ws[W_GAIN, j, 0]
-                       + ws[W_GAIN, i, 1] * r_noise[1] * ws[W_GAIN, j, 1])
-                for k in range(n):
-                    acc += ws[W_TMP, i, k] * ws[W_IKH, j, k]
+                acc = (p[i, j] - k0 * ws[W_GAIN, 2, j] - k1 * ws[W_GAIN, 3, j]
+                       + ks0 * ws[W_GAIN, 0, j] + ks1 * ws[W_GAIN, 1, j])
                 p[i, j] = acc
                 p[j, i] = acc
 
@@ -237,7 +240,10 @@ def _make_kernels(n):
                     return False
         return _finite(r_model) and _finite(vy_model) and _finite(nis)
 
-    @numba.njit(cache=True)
+    # Compiled without numba's runtime (NRT): the step allocates nothing, and with the NRT every
+    # call increfs and decrefs its ten array arguments with atomic instructions, which took 60 % of
+    # the euler step (numba issues #2345, #2350 give _nrt=False as the remedy).
+    @numba.njit(cache=True, _nrt=False)
     def step_n(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,
                steering_rate, vy, psi, yaw_rate, ws, out):
         for k in range(N_OUTPUTS):

@@ -66,8 +66,8 @@ def continuous_matrix(cf, cr, vx, vehicle, with_heading, ws):
     mass, lf, lr, iz = vehicle[0], vehicle[1], vehicle[2], vehicle[3]
     nd = 3 if with_heading else 2
     for s in range(W_M, W_DM_R + 1):
-        for i in range(WORK_SIZE):
-            for j in range(WORK_SIZE):
+        for i in range(nd):
+            for j in range(nd + 2):
                 ws[s, i, j] = 0.0
     u = nd  # steering column
     a = 2.0 / (mass * vx)
