@@ -84,10 +84,14 @@ def isolated(command: list[str]) -> list[str]:
     return ["unshare", "-n", "sh", "-c", 'ip link set lo up && exec "$@"', "sh", *command]
 
 
-def estimator_command(*ros_args: str) -> list[str]:
-    """The installed ``estimator`` next to this interpreter, else ``python -m transplanter_ident.node``."""
+def estimator_command(*ros_args: str, options: Iterable[str] = ()) -> list[str]:
+    """The installed ``estimator`` next to this interpreter, else ``python -m transplanter_ident.node``.
+
+    ``options`` (e.g. ``--executor single``) go before ``--ros-args``.
+    """
     script = Path(sys.executable).parent / "estimator"
     base = [str(script)] if script.is_file() else [sys.executable, "-m", "transplanter_ident.node"]
+    base = [*base, *options]
     return [*base, "--ros-args", *ros_args] if ros_args else base
 
 
@@ -190,11 +194,12 @@ class RosSession:
 
     # -- the node under test
 
-    def start_estimator(self, ros_args: Iterable[str], log_path: Path, command: list[str] | None = None) -> None:
+    def start_estimator(self, ros_args: Iterable[str], log_path: Path, command: list[str] | None = None,
+                        options: Iterable[str] = ()) -> None:
         """Start the estimator (a child process in this namespace); its output goes to ``log_path``."""
         self.log_path = Path(log_path)
         log = self.log_path.open("w")
-        self.process = subprocess.Popen(command or estimator_command(*ros_args), stdout=log, stderr=subprocess.STDOUT,
+        self.process = subprocess.Popen(command or estimator_command(*ros_args, options=options), stdout=log, stderr=subprocess.STDOUT,
                                         preexec_fn=_die_with_parent, cwd=ROOT)
         log.close()
 
@@ -323,6 +328,7 @@ def scenario(spec: dict[str, Any]) -> dict[str, Any]:
 
     spec keys:
       estimator_args: ROS arguments of the node (after --ros-args); node name 'estimator'
+      estimator_options: options of the node before --ros-args (e.g. ["--executor", "single"])
       record: {key: [topic, type]} to record
       publish_types: [[topic, type], ...] publishers to create up front (matched before the steps)
       steps: a list of one-key dicts, in order:
@@ -345,7 +351,8 @@ def scenario(spec: dict[str, Any]) -> dict[str, Any]:
             session.record(key, topic, type_name)
         for topic, type_name in spec.get("publish_types", []):
             session.publisher(topic, type_name)
-        session.start_estimator(spec.get("estimator_args", []), Path(spec["_tmp"]) / "estimator.log")
+        session.start_estimator(spec.get("estimator_args", []), Path(spec["_tmp"]) / "estimator.log",
+                                options=spec.get("estimator_options", []))
         session.wait_matched(spec.get("match_timeout", 30.0))
         for step in spec["steps"]:
             _run_step(session, step, marks, results)

@@ -342,8 +342,12 @@ def replay_csv(bag: Path, tmp_path: Path) -> list[dict[str, float]]:
         return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(handle)]
 
 
-def test_online_equals_offline(tmp_path: Path) -> None:
-    """The node fed a bag's messages (original stamps, bag order) publishes exactly replay's numbers."""
+@pytest.mark.parametrize("executor", ["events", "single"])
+def test_online_equals_offline(tmp_path: Path, executor: str) -> None:
+    """The node fed a bag's messages (original stamps, bag order) publishes exactly replay's numbers.
+
+    With either executor of ``estimator --executor``: the EventsExecutor (default) and rclpy's default one.
+    """
     from transplanter_ident.ekf import O_CF, O_CF_STD, O_CR, O_CR_STD, O_STATUS, run_sequence
     from transplanter_ident.measurements import EpochArrays, assemble
     from transplanter_ident.node import assembler_settings
@@ -360,6 +364,7 @@ def test_online_equals_offline(tmp_path: Path) -> None:
 
     result = run_scenario({
         "estimator_args": ["--params-file", str(CONFIG)],
+        "estimator_options": ["--executor", executor],
         "record": record_spec(),
         "publish_types": PUBLISH_TYPES,
         "steps": [{"publish": specs, "pace": 0.002}, {"wait_for": ["measurement", expected, 30.0]}, {"spin": 0.3}],
@@ -555,8 +560,8 @@ def test_use_sim_time_other_message_types_and_a_looping_bag() -> None:
     A Float64 has no stamp: the node takes its ROS time, the last /clock. So the drive is published
     in real time with 10 Hz steering, each /clock 2 ms before the steering sample it stamps, the GNSS
     pair 50 ms later and the next /clock 100 ms later: only a 98 ms stall of the node could change
-    which clock a sample gets (the executor serves ready subscriptions in creation order, not in
-    arrival order).
+    which clock a sample gets (rclpy's default executor serves ready subscriptions in creation order,
+    not in arrival order).
     """
     config = SimConfig(duration=6.0, speed=2.0, steering=sine_steering(math.radians(15.0), 6.0), gnss_rate=10.0,
                        steering_rate=10.0, seed=11)
