@@ -3,6 +3,7 @@
     ros2 launch transplanter_ident estimator.launch.py
     ros2 launch transplanter_ident estimator.launch.py tuned_params:=/path/to/tuned.yaml
     ros2 launch transplanter_ident estimator.launch.py use_sim_time:=true   # with `ros2 bag play --clock`
+    ros2 launch transplanter_ident estimator.launch.py executor:=single     # rclpy's default executor
 
 The defaults come from share/transplanter_ident/config/estimator.yaml; a tuned file written by
 `tuner` is layered over them (later files override earlier ones key by key), as on the command
@@ -31,11 +32,15 @@ def _estimator(context, *args, **kwargs):
         parameters.append(tuned)
     use_sim_time = LaunchConfiguration("use_sim_time").perform(context).strip().lower() in ("true", "1", "yes")
     parameters.append({"use_sim_time": use_sim_time})
+    executor = LaunchConfiguration("executor").perform(context).strip()
+    if executor not in ("events", "single"):
+        raise RuntimeError(f"executor: must be events or single, got {executor!r}")
     return [
         Node(
             package="transplanter_ident",
             executable="estimator",
             name="estimator",
+            arguments=["--executor", executor],
             parameters=parameters,
             output="screen",
             emulate_tty=True,
@@ -44,7 +49,7 @@ def _estimator(context, *args, **kwargs):
 
 
 def generate_launch_description():
-    """Arguments: tuned_params (a params YAML from `tuner`, optional), use_sim_time."""
+    """Arguments: tuned_params (a params YAML from `tuner`, optional), use_sim_time, executor."""
     return LaunchDescription([
         DeclareLaunchArgument(
             "tuned_params",
@@ -55,6 +60,11 @@ def generate_launch_description():
             "use_sim_time",
             default_value="false",
             description="use the /clock of a replayed bag (ros2 bag play --clock)",
+        ),
+        DeclareLaunchArgument(
+            "executor",
+            default_value="events",
+            description="events (rclpy's EventsExecutor, the lighter one) or single (SingleThreadedExecutor)",
         ),
         OpaqueFunction(function=_estimator),
     ])
