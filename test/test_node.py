@@ -551,6 +551,25 @@ def test_bad_input_is_reported_and_never_kills_or_poisons_the_node() -> None:
     assert {s["name"]: s["level"] for s in final}["estimator: steering input"] == 0  # recovered
 
 
+def test_a_publisher_of_another_type_is_named_in_diagnostics() -> None:
+    """A Float64 publisher on the velocity topic never matches; /diagnostics names it, not just 'stale'."""
+    wrong = [{"topic": VEL, "type": "std_msgs/msg/Float64", "fields": {"data": 1.0}, "at": 0.1 * i} for i in range(25)]
+    result = run_scenario({
+        "estimator_args": ["--params-file", str(CONFIG), "-p", "diagnostics.period:=0.2",
+                           "-p", "diagnostics.stale_timeout:=0.5"],
+        "record": {"diagnostics": list(DIAGNOSTICS)},
+        "publish_types": [[HEAD, QUAT], [STEER, JOINT]],  # one participant cannot have two types on VEL
+        "steps": [{"publish": wrong}, {"spin": 0.5}],
+    }, timeout=120)
+    assert result["alive"] and result["returncode"] == 0, result["log"]
+    velocity = [s for item in result["records"]["diagnostics"] for s in item["msg"]["status"]
+                if s["name"] == "estimator: velocity input"]
+    named = [s for s in velocity if s["level"] == 2 and "sends std_msgs/msg/Float64" in s["message"]]
+    assert named, sorted({s["message"] for s in velocity})
+    assert "stale: no message on /gnss/vel" in named[-1]["message"]
+    assert "topics.velocity_type geometry_msgs/msg/TwistStamped" in named[-1]["message"]
+
+
 # --------------------------------------------------------------------------- other message types, sim time
 
 

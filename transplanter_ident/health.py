@@ -324,6 +324,8 @@ class HealthMonitor:
                 message = f"stale: no message on {topic} since start ({age:.1f} s)"
             else:
                 message = f"stale: no message on {topic} for {age:.1f} s (timeout {th.stale_timeout:g} s)"
+            if recent:  # e.g. a publisher of another message type
+                message += f"; {monitor.last_rejection}"
             return HealthReport(name, ERROR, message, values)
         if recent:
             return HealthReport(name, WARN, f"{recent} rejected in the last {th.window:g} s: {monitor.last_rejection}",

@@ -194,6 +194,11 @@ def validate(flat: dict[str, Any]) -> tuple[EstimatorParams, HealthThresholds]:
     return params, thresholds
 
 
+def ros_type_name(msg_type: type) -> str:
+    """geometry_msgs.msg.TwistStamped -> 'geometry_msgs/msg/TwistStamped' (as the ROS graph names types)."""
+    return f"{msg_type.__module__.split('.')[0]}/msg/{msg_type.__name__}"
+
+
 def message_type_name(value: str) -> str:
     """'geometry_msgs/msg/TwistStamped', 'geometry_msgs/TwistStamped' or 'TwistStamped' -> 'TwistStamped'."""
     return str(value).rsplit("/", 1)[-1]
@@ -263,15 +268,17 @@ class EstimatorNode(Node):
         heading_type, self._orientation_of = HEADING_TYPES[message_type_name(self._flat["topics.heading_type"])]
         steering_type = STEERING_TYPES[message_type_name(self._flat["topics.steering_type"])]
         steering_callback = self._on_joint_state if steering_type is JointState else self._on_steering_float
+        self._input_types: list[tuple[str, str, str]] = []  # (role, resolved topic, 'pkg/msg/Type')
         # Steering first: the default executor serves waiting subscriptions in creation order (the EventsExecutor
         # in arrival order), and the steering sample at t_k belongs to the interval that the GNSS epoch t_k closes.
         for role, msg_type, topic, callback in (("steering", steering_type, topics.steering, steering_callback),
                                                 ("velocity", velocity_type, topics.velocity, self._on_velocity),
                                                 ("heading", heading_type, topics.heading, self._on_heading)):
-            # best effort + volatile accept every publisher's QoS; a publisher of another type is reported
-            events = SubscriptionEventCallbacks(incompatible_type=self._incompatible_type_handler(role, topic),
-                                                use_default_callbacks=False)
-            self.create_subscription(msg_type, topic, callback, qos_profile_sensor_data, event_callbacks=events)
+            # best effort + volatile accept every publisher's QoS; a publisher of another type is found in the graph
+            events = SubscriptionEventCallbacks(use_default_callbacks=False)
+            subscription = self.create_subscription(msg_type, topic, callback, qos_profile_sensor_data,
+                                                    event_callbacks=events)
+            self._input_types.append((role, subscription.topic_name, ros_type_name(msg_type)))
         self.create_service(Trigger, "~/reset", self._on_reset)
         # a replayed bag that restarts (ros2 bag play --loop, use_sim_time) moves ROS time back: start over
         self._jump_handle = self.get_clock().create_jump_callback(
@@ -319,12 +326,18 @@ class EstimatorNode(Node):
         self._health.on_message("steering", time.monotonic())
         self._process(self._assembler.add_steering(self._now(), msg.data), None)
 
-    def _incompatible_type_handler(self, role: str, topic: str) -> Callable[[Any], None]:
-        def handler(_event: Any) -> None:
-            self._reject(Rejection(role, self._now(), f"a publisher on {topic} has another message type "
-                                   f"than topics.{role}_type"))
+    def _check_publisher_types(self) -> None:
+        """Report a publisher of another message type on an input topic, once per diagnostics period.
 
-        return handler
+        DDS never matches it and Fast DDS raises no incompatible-type event, so the input would
+        otherwise only look stale.
+        """
+        for role, topic, expected in self._input_types:
+            for info in self.get_publishers_info_by_topic(topic):
+                if info.topic_type != expected:
+                    self._reject(Rejection(role, self._now(), f"a publisher on {topic} sends {info.topic_type}, "
+                                           f"not topics.{role}_type {expected}"))
+                    break
 
     def _stamp(self, header: Any) -> float:
         """header.stamp in seconds; an unset (zero) stamp means the arrival time, as bag_io uses the log time."""
@@ -393,6 +406,7 @@ class EstimatorNode(Node):
     # ------------------------------------------------------------------ diagnostics, reset, parameters
 
     def _publish_diagnostics(self) -> None:
+        self._check_publisher_types()
         array = DiagnosticArray()
         array.header.stamp = self.get_clock().now().to_msg()
         array.status = [_to_status(report, self.get_fully_qualified_name())
