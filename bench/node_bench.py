@@ -164,6 +164,11 @@ def drive(args: dict[str, Any]) -> dict[str, Any]:
         received: list[tuple[int, int]] = []
         session.subscribe("stiffness", "/estimator/cornering_stiffness", "geometry_msgs/msg/Vector3Stamped",
                           lambda msg: received.append((_ms(msg.header.stamp), time.time_ns())))
+        node_counts: dict[str, int] = {}  # messages per input, from the node's last /diagnostics
+        if not floor:
+            session.subscribe("diagnostics", "/diagnostics", "diagnostic_msgs/msg/DiagnosticArray",
+                              lambda msg: node_counts.update(_input_counts(msg)))
+        published = 0
         if floor:
             session.start_estimator([], tmp / "floor.log", command=[sys.executable, "-c", FLOOR_NODE, executor])
         else:
@@ -188,9 +193,10 @@ def drive(args: dict[str, Any]) -> dict[str, Any]:
             pub_vel.publish(vel)
             sent[_ms(head.header.stamp)] = time.time_ns()
             pub_head.publish(head)
+            published += 1
         cpu1, wall1, threads1 = _proc_cpu_seconds(pid), time.monotonic(), _thread_cpu_seconds(pid)
         rss_kb = _proc_status_kb(pid, "VmHWM")
-        session.spin_for(0.5)
+        session.spin_for(0.5 if floor else 1.5)  # the estimator: one more /diagnostics (1 Hz)
         alive = session.alive()
     finally:
         returncode = session.stop_estimator()
@@ -213,9 +219,20 @@ def drive(args: dict[str, Any]) -> dict[str, Any]:
             "e2e_median_ms": 1e3 * statistics.median(end_to_end),
             "e2e_p99_ms": 1e3 * _percentile(end_to_end, 99.0),
             "cpu_percent": 100.0 * (cpu1 - cpu0) / (wall1 - wall0),
-            "rss_mb": rss_kb / 1024.0, "wall_s": wall1 - wall0,
+            "rss_mb": rss_kb / 1024.0, "wall_s": wall1 - wall0, "published_per_input": published,
+            "node_counts": node_counts,
             "cpu_by_thread": {name: 100.0 * (threads1[name] - threads0.get(name, 0.0)) / (wall1 - wall0)
                               for name in threads1 if threads1[name] - threads0.get(name, 0.0) > 0.0}}
+
+
+def _input_counts(msg: Any) -> dict[str, int]:
+    """{'velocity': n, ...}: the 'messages' value of each '<role> input' status of a DiagnosticArray."""
+    counts = {}
+    for status in msg.status:
+        if status.name.endswith(" input"):
+            values = {kv.key: kv.value for kv in status.values}
+            counts[status.name.split(": ", 1)[-1].removesuffix(" input")] = int(values.get("messages", "0"))
+    return counts
 
 
 def _ms(stamp: Any) -> int:
@@ -269,6 +286,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{est['latency_p99_ms']:.3f} ms, max {est['latency_max_ms']:.3f} ms; end-to-end median "
               f"{est['e2e_median_ms']:.3f} ms, p99 {est['e2e_p99_ms']:.3f} ms; CPU {est['cpu_percent']:.1f} % of one "
               f"core ({', '.join(f'{name} {pct:.1f}' for name, pct in by_thread)}); peak RSS {est['rss_mb']:.1f} MB\n"
+              f"       inputs taken by the node (best-effort QoS) of {est['published_per_input']} published each: "
+              f"{', '.join(f'{k} {v}' for k, v in sorted(est['node_counts'].items())) or 'no /diagnostics'}\n"
               f"       floor (bare rclpy node, {args.floor_duration:g} s): CPU {base['cpu_percent']:.1f} %, peak RSS "
               f"{base['rss_mb']:.1f} MB, end-to-end median {base['e2e_median_ms']:.3f} ms -> estimator/floor CPU "
               f"{est['cpu_ratio_to_floor']:.2f}", flush=True)
