@@ -93,7 +93,7 @@ def _wrap(angle):
 
 
 # work-buffer slots of this module (model.py uses 0..11)
-W_F, W_TMP, W_GAIN, W_IKH, W_BACKUP_P, W_VEC = 12, 13, 14, 15, 16, 17
+W_F, W_TMP, W_GAIN, W_BACKUP_P, W_VEC = 12, 13, 14, 15, 16  # W_GAIN rows: K[:, 0], K[:, 1], P[0], P[h1]
 V_BACKUP_X, V_BACKUP_MODEL, V_NEW_X, V_NEW_MODEL = 0, 1, 2, 3  # rows of ws[W_VEC]
 
 
