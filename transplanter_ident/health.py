@@ -427,7 +427,7 @@ class HealthMonitor:
                   ("p99_ms", f"{1e3 * lat.percentile(99):.3f}"), ("max_ms", f"{1e3 * lat.percentile(100):.3f}"))
         if not len(lat):
             return HealthReport("estimator: latency", OK, "no epoch yet", values)
-        return HealthReport("estimator: latency", OK, f"GNSS arrival to publish: median "
+        return HealthReport("estimator: latency", OK, f"GNSS callback to publish: median "
                             f"{1e3 * lat.percentile(50):.2f} ms, p99 {1e3 * lat.percentile(99):.2f} ms", values)
 
 
