@@ -26,7 +26,8 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from bench_util import ROOT, cached_bag, child_env, command, default_cache  # bench/ is on sys.path
+
 BAG_VERSION = "v1"  # bump when simulate's output changes in a way that matters here
 TARGET_RATIO = 2.0
 TARGET_WALL = 10.0
@@ -45,22 +46,11 @@ print(count)
 """
 
 
-def _command(name: str) -> list[str]:
-    script = Path(sys.executable).parent / name
-    return [str(script)] if script.exists() else [sys.executable, "-m", f"transplanter_ident.{name}"]
-
-
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH", "")]))
-    return env
-
-
 def _measure(argv: list[str], log: Path) -> tuple[float, float]:
     """(wall s, peak RSS MiB) of one child process; raises if it fails."""
     with open(log, "w") as out:
         start = time.perf_counter()
-        proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, env=_env(), cwd=ROOT)
+        proc = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, env=child_env(), cwd=ROOT)
         _, status, usage = os.wait4(proc.pid, 0)
         wall = time.perf_counter() - start
     proc.returncode = os.waitstatus_to_exitcode(status)
@@ -70,16 +60,10 @@ def _measure(argv: list[str], log: Path) -> tuple[float, float]:
 
 
 def ensure_bag(cache: Path, duration: float) -> Path:
-    """The cached benchmark bag (generated on first use)."""
-    bag = cache / f"replay_{int(duration)}s_20hz_{BAG_VERSION}"
-    if (bag / "metadata.yaml").is_file():
-        return bag
-    cache.mkdir(parents=True, exist_ok=True)
-    print(f"generating {bag} (once; takes ~10-20 s) ...", flush=True)
-    subprocess.run([*_command("simulate"), "-o", str(bag), "--scenario", "sine", "--duration", str(duration),
-                    "--gnss-rate", "20", "--steering-rate", "50", "--seed", "0", "--force"],
-                   check=True, env=_env(), cwd=ROOT, stdout=subprocess.DEVNULL)
-    return bag
+    """The cached benchmark bag (generated on first use; takes ~10-20 s)."""
+    return cached_bag(cache, f"replay_{int(duration)}s_20hz_{BAG_VERSION}",
+                      ["--scenario", "sine", "--duration", str(duration), "--gnss-rate", "20", "--steering-rate", "50",
+                       "--seed", "0"])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -87,9 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="replay_bench", description=__doc__.split("\n\n")[0])
     parser.add_argument("--runs", type=int, default=3, help="runs per measurement (default 3)")
     parser.add_argument("--duration", type=float, default=3600.0, help="bag duration, s (default 3600)")
-    parser.add_argument("--cache", type=Path,
-                        default=Path(os.environ.get("TRANSPLANTER_BENCH_CACHE",
-                                                    Path(tempfile.gettempdir()) / "transplanter_ident_bench")))
+    parser.add_argument("--cache", type=Path, default=default_cache())
     parser.add_argument("--strict", action="store_true", help="exit 1 when a target is missed")
     args = parser.parse_args(argv)
 
@@ -97,12 +79,12 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="replay_bench_") as tmp:
         work = Path(tmp)
         warm = work / "warm"
-        subprocess.run([*_command("simulate"), "-o", str(warm), "--duration", "5"], check=True, env=_env(),
+        subprocess.run([*command("simulate"), "-o", str(warm), "--duration", "5"], check=True, env=child_env(),
                        cwd=ROOT, stdout=subprocess.DEVNULL)
-        _measure([*_command("replay"), str(warm), "--quiet"], work / "warm.log")
+        _measure([*command("replay"), str(warm), "--quiet"], work / "warm.log")
 
         baseline_argv = [sys.executable, "-c", BASELINE, str(bag)]
-        replay_argv = [*_command("replay"), str(bag), "--csv", str(work / "out.csv"), "--quiet"]
+        replay_argv = [*command("replay"), str(bag), "--csv", str(work / "out.csv"), "--quiet"]
         base, rep = [], []
         for _ in range(args.runs):  # interleaved, so drift affects both alike
             base.append(_measure(baseline_argv, work / "baseline.log"))

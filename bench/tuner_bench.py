@@ -29,39 +29,21 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from bench_util import ROOT, cached_bag, child_env, command, default_cache  # bench/ is on sys.path
+
 BAG_VERSION = "v1"
 TARGET_WALL = 15.0
 
 
-def _command(name: str) -> list[str]:
-    script = Path(sys.executable).parent / name
-    return [str(script)] if script.exists() else [sys.executable, "-m", f"transplanter_ident.{name}"]
-
-
-def _env(**extra: str) -> dict[str, str]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH", "")]))
-    env.update(extra)
-    return env
-
-
 def ensure_bag(cache: Path) -> Path:
     """The cached 10-minute bag (generated on first use)."""
-    bag = cache / f"tuner_600s_5hz_{BAG_VERSION}"
-    if (bag / "metadata.yaml").is_file():
-        return bag
-    cache.mkdir(parents=True, exist_ok=True)
-    print(f"generating {bag} (once) ...", flush=True)
-    subprocess.run([*_command("simulate"), "-o", str(bag), "--scenario", "sine", "--duration", "600", "--seed", "0",
-                    "--force"], check=True, env=_env(), cwd=ROOT, stdout=subprocess.DEVNULL)
-    return bag
+    return cached_bag(cache, f"tuner_600s_5hz_{BAG_VERSION}", ["--scenario", "sine", "--duration", "600", "--seed", "0"])
 
 
 def run_tuner(bag: Path, out: Path, seed: int, env: dict[str, str]) -> tuple[float, str]:
     """(wall s, stdout) of one tuner subprocess; raises if it fails."""
     start = time.perf_counter()
-    result = subprocess.run([*_command("tuner"), str(bag), "-o", str(out), "--seed", str(seed)],
+    result = subprocess.run([*command("tuner"), str(bag), "-o", str(out), "--seed", str(seed)],
                             capture_output=True, text=True, env=env, cwd=ROOT)
     wall = time.perf_counter() - start
     if result.returncode != 0:
@@ -73,9 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and print the table; returns 0 (1 if the target is missed and --strict)."""
     parser = argparse.ArgumentParser(prog="tuner_bench", description=__doc__.split("\n\n")[0])
     parser.add_argument("--runs", type=int, default=3, help="runs per condition (default 3)")
-    parser.add_argument("--cache", type=Path,
-                        default=Path(os.environ.get("TRANSPLANTER_BENCH_CACHE",
-                                                    Path(tempfile.gettempdir()) / "transplanter_ident_bench")))
+    parser.add_argument("--cache", type=Path, default=default_cache())
     parser.add_argument("--strict", action="store_true", help="exit 1 when the target is missed")
     args = parser.parse_args(argv)
 
@@ -83,12 +63,12 @@ def main(argv: list[str] | None = None) -> int:
     cold, warm = [], []
     with tempfile.TemporaryDirectory(prefix="tuner_bench_") as tmp:
         work = Path(tmp)
-        run_tuner(bag, work / "warmup.yaml", 0, _env())  # fills the regular numba cache for the warm runs
+        run_tuner(bag, work / "warmup.yaml", 0, child_env())  # fills the regular numba cache for the warm runs
         for i in range(args.runs):  # interleaved, so drift affects both alike
             fresh = work / f"numba_cache_{i}"
             fresh.mkdir()
-            cold.append(run_tuner(bag, work / f"cold{i}.yaml", i, _env(NUMBA_CACHE_DIR=str(fresh))))
-            warm.append(run_tuner(bag, work / f"warm{i}.yaml", i, _env()))
+            cold.append(run_tuner(bag, work / f"cold{i}.yaml", i, child_env(NUMBA_CACHE_DIR=str(fresh))))
+            warm.append(run_tuner(bag, work / f"warm{i}.yaml", i, child_env()))
     summary = next((line for line in warm[-1][1].splitlines() if line.startswith("ipso:")), "")
 
     print(f"\ntuner end-to-end benchmark: {bag.name} (3000 epochs), IPSO F = 20, k_max = 40, exact/log/heading; "

@@ -90,6 +90,17 @@ def test_continuous_matrix_is_eq4():
             np.testing.assert_allclose(m0 + cf * dm_f + cr * dm_r, m, rtol=1e-13, atol=1e-12)
 
 
+def test_continuous_matrix_does_not_depend_on_what_the_buffer_held():
+    """A work buffer reused across modes (heading, then yaw_rate) gives the same M as a fresh one."""
+    vehicle = vehicle_array(VEHICLE)
+    reused, fresh = work_buffer(), work_buffer()
+    continuous_matrix(8000.0, 10000.0, 2.0, vehicle, True, reused)
+    continuous_matrix(8000.0, 10000.0, 2.0, vehicle, False, reused)
+    continuous_matrix(8000.0, 10000.0, 2.0, vehicle, False, fresh)
+    for slot in (W_M, W_DM_F, W_DM_R):
+        np.testing.assert_array_equal(reused[slot, :4, :4], fresh[slot, :4, :4])
+
+
 def test_steady_state_yaw_rate_solves_eq4():
     delta = math.radians(5.0)
     a, b = eq4(VEHICLE, 8000.0, 10000.0, 1.5)

@@ -241,7 +241,7 @@ def _make_kernels(n):
         return _finite(r_model) and _finite(vy_model) and _finite(nis)
 
     # Compiled without numba's runtime (NRT): the step allocates nothing, and with the NRT every
-    # call increfs and decrefs its ten array arguments with atomic instructions, which took 60 % of
+    # call increfs and decrefs its ten array arguments with atomic instructions, which took over half of
     # the euler step (numba issues #2345, #2350 give _nrt=False as the remedy).
     @numba.njit(cache=True, _nrt=False)
     def step_n(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,

@@ -61,12 +61,13 @@ def continuous_matrix(cf, cr, vx, vehicle, with_heading, ws):
 
     Size nd + 2 with nd = 3 (vy, r, psi) in heading mode, else 2 (vy, r). The steering angle
     is an extra state whose derivative is the (constant) steering rate, so one matrix
-    exponential yields the response to a steering ramp over the interval.
+    exponential yields the response to a steering ramp over the interval. The discretisation
+    reads only rows < nd (``mul_top`` takes the input rows [[0, 1], [0, 0]] as arguments).
     """
     mass, lf, lr, iz = vehicle[0], vehicle[1], vehicle[2], vehicle[3]
     nd = 3 if with_heading else 2
-    for s in range(W_M, W_DM_R + 1):
-        for i in range(nd):
+    for s in range(W_M, W_DM_R + 1):  # M is (nd + 2) square; the rest of the 5 x 5 slot is not part of it
+        for i in range(nd + 2):
             for j in range(nd + 2):
                 ws[s, i, j] = 0.0
     u = nd  # steering column
@@ -114,6 +115,18 @@ def _make_discretize(nd):
                 else:
                     ws[out, i, j] = acc
 
+    @numba.njit(cache=True, inline='always')
+    def product_rule(ws, left, left_f, left_r, right, right_f, right_r, in00, in01, in11):
+        """N = L R and dN = dL R + L dR for both stiffnesses, into W_NT, W_NDT_F, W_NDT_R.
+
+        [[in00, in01], [0, in11]] are R's input rows; dR's are zero (they hold no stiffness).
+        """
+        mul_top(ws, left, right, W_NT, in00, in01, in11, False)
+        mul_top(ws, left_f, right, W_NDT_F, in00, in01, in11, False)
+        mul_top(ws, left, right_f, W_NDT_F, 0.0, 0.0, 0.0, True)
+        mul_top(ws, left_r, right, W_NDT_R, in00, in01, in11, False)
+        mul_top(ws, left, right_r, W_NDT_R, 0.0, 0.0, 0.0, True)
+
     @numba.njit(cache=True)
     def discretize_fixed(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, ws):
         continuous_matrix(cf, cr, vx, vehicle, nd == 3, ws)
@@ -153,11 +166,7 @@ def _make_discretize(nd):
                 ws[W_DT_R, i, j] = ws[W_DM_R, i, j]
         for order in range(2, TAYLOR_ORDER + 1):  # T_k = T_{k-1} X / k, dT_k = (dT_{k-1} X + T_{k-1} dX) / k
             inv = 1.0 / order
-            mul_top(ws, W_T, W_M, W_NT, 0.0, h, 0.0, False)
-            mul_top(ws, W_DT_F, W_M, W_NDT_F, 0.0, h, 0.0, False)
-            mul_top(ws, W_T, W_DM_F, W_NDT_F, 0.0, 0.0, 0.0, True)
-            mul_top(ws, W_DT_R, W_M, W_NDT_R, 0.0, h, 0.0, False)
-            mul_top(ws, W_T, W_DM_R, W_NDT_R, 0.0, 0.0, 0.0, True)
+            product_rule(ws, W_T, W_DT_F, W_DT_R, W_M, W_DM_F, W_DM_R, 0.0, h, 0.0)
             for i in range(nd):
                 for j in range(size):
                     ws[W_T, i, j] = ws[W_NT, i, j] * inv
@@ -168,11 +177,7 @@ def _make_discretize(nd):
                     ws[W_DE_R, i, j] += ws[W_DT_R, i, j]
         span = h
         for _ in range(squarings):  # E <- E E, dE <- dE E + E dE
-            mul_top(ws, W_E, W_E, W_NT, 1.0, span, 1.0, False)
-            mul_top(ws, W_DE_F, W_E, W_NDT_F, 1.0, span, 1.0, False)
-            mul_top(ws, W_E, W_DE_F, W_NDT_F, 0.0, 0.0, 0.0, True)
-            mul_top(ws, W_DE_R, W_E, W_NDT_R, 1.0, span, 1.0, False)
-            mul_top(ws, W_E, W_DE_R, W_NDT_R, 0.0, 0.0, 0.0, True)
+            product_rule(ws, W_E, W_DE_F, W_DE_R, W_E, W_DE_F, W_DE_R, 1.0, span, 1.0)
             for i in range(nd):
                 for j in range(size):
                     ws[W_E, i, j] = ws[W_NT, i, j]
