@@ -34,7 +34,7 @@ lint: venv
 	$(BIN)/ruff check .
 
 demo: venv
-	$(BIN)/python -m transplanter_ident.demo
+	$(BIN)/python -m transplanter_ident.cli.demo
 
 bench: venv
 	$(BIN)/python bench/run.py
@@ -46,7 +46,7 @@ clean:
 # Regenerate the committed sample bags (bags/README.md lists the same commands).
 .PHONY: bags
 bags: venv
-	$(BIN)/python -m transplanter_ident.simulate -o bags/step20-ccw --scenario step20-ccw --seed 1 --compress --force
-	$(BIN)/python -m transplanter_ident.simulate -o bags/step30-cw --scenario step30-cw --seed 2 --compress --force
-	$(BIN)/python -m transplanter_ident.simulate -o bags/sine --scenario sine --seed 3 --compress --force
-	$(BIN)/python -m transplanter_ident.simulate -o bags/surface-change --scenario surface-change --seed 4 --compress --force
+	$(BIN)/python -m transplanter_ident.cli.simulate -o bags/step20-ccw --scenario step20-ccw --seed 1 --compress --force
+	$(BIN)/python -m transplanter_ident.cli.simulate -o bags/step30-cw --scenario step30-cw --seed 2 --compress --force
+	$(BIN)/python -m transplanter_ident.cli.simulate -o bags/sine --scenario sine --seed 3 --compress --force
+	$(BIN)/python -m transplanter_ident.cli.simulate -o bags/surface-change --scenario surface-change --seed 4 --compress --force

@@ -25,10 +25,10 @@ setup(
     python_requires=">=3.10",
     entry_points={
         "console_scripts": [
-            f"estimator = {PACKAGE}.node:main",
-            f"tuner = {PACKAGE}.tuner:main",
-            f"replay = {PACKAGE}.replay:main",
-            f"simulate = {PACKAGE}.simulate:main",
+            f"estimator = {PACKAGE}.ros.node:main",
+            f"tuner = {PACKAGE}.cli.tuner:main",
+            f"replay = {PACKAGE}.cli.replay:main",
+            f"simulate = {PACKAGE}.cli.simulate:main",
         ],
     },
 )

@@ -44,9 +44,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from transplanter_ident import ekf  # noqa: E402
-from transplanter_ident.parameters import EstimatorConfig, FilterOptions, NoiseParams  # noqa: E402
-from transplanter_ident.tuning import batch_objective  # noqa: E402
+import transplanter_ident.ekf.kernels as ekf  # noqa: E402
+from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams  # noqa: E402
+from transplanter_ident.tuning.problem import batch_objective  # noqa: E402
 
 REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "bench" / "ekf_reference.c"
 TARGET_RATIO = 2.0

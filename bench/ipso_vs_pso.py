@@ -32,16 +32,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from transplanter_ident.optimize import (  # noqa: E402
-    Box,
-    IpsoSettings,
-    ackley,
-    minimize,
-    pso_for_budget,
-    random_search,
-    rastrigin,
-    shifted,
-)
+from transplanter_ident.tuning.benchmark_functions import ackley, random_search, rastrigin, shifted  # noqa: E402
+from transplanter_ident.tuning.box import Box  # noqa: E402
+from transplanter_ident.tuning.pso import IpsoSettings, minimize, pso_for_budget  # noqa: E402
 
 SHIFT = np.array([1.3, -2.1, 0.7, 2.9, -0.4, 1.8])
 
@@ -56,10 +49,10 @@ def problems(with_tuning: bool) -> list[tuple[str, Callable[[np.ndarray], np.nda
         ("Ackley (shifted)", shifted(ackley, 5.0 * SHIFT), ackley_box),
     ]
     if with_tuning:
-        from transplanter_ident.demo import ensure_bag
-        from transplanter_ident.params_file import EstimatorParams
-        from transplanter_ident.tuner import load_bag
-        from transplanter_ident.tuning import TuningProblem
+        from transplanter_ident.bags.samples import ensure_bag
+        from transplanter_ident.cli.tuner import load_bag
+        from transplanter_ident.config.params_file import EstimatorParams
+        from transplanter_ident.tuning.problem import TuningProblem
 
         params = EstimatorParams()
         bag = ensure_bag("step20-ccw", ROOT / "bags", Path(tempfile.gettempdir()) / "transplanter_ident_bench")

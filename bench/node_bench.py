@@ -121,7 +121,8 @@ def _stream(duration: float) -> list[tuple[float, Any, Any, Any]]:
     from geometry_msgs.msg import QuaternionStamped, TwistStamped
     from sensor_msgs.msg import JointState
 
-    from transplanter_ident.sim import SimConfig, simulate, sine_steering
+    from transplanter_ident.sim.signals import sine_steering
+    from transplanter_ident.sim.simulator import SimConfig, simulate
 
     config = SimConfig(duration=duration, speed=2.0, steering=sine_steering(math.radians(15.0), 6.0),
                        gnss_rate=RATE, steering_rate=RATE, seed=7)
@@ -262,8 +263,8 @@ def main(argv: list[str] | None = None) -> int:
           f"network namespace: {'yes' if ros_harness.unshare_works() else 'no (loopback + own domain)'}",
           flush=True)
     # fill numba's on-disk cache first (a stale cache would make the first run compile and inflate its RSS)
-    subprocess.run([sys.executable, "-c", "from transplanter_ident.node import _warm_up\n"
-                    "from transplanter_ident.params_file import EstimatorParams\n_warm_up(EstimatorParams())"],
+    subprocess.run([sys.executable, "-c", "from transplanter_ident.ros.node import _warm_up\n"
+                    "from transplanter_ident.config.params_file import EstimatorParams\n_warm_up(EstimatorParams())"],
                    check=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
     runs = []
     for i in range(args.runs):

@@ -30,11 +30,11 @@ sys.path.insert(0, str(ROOT / "test"))
 
 from helpers import simulate_epochs  # noqa: E402 - test/helpers.py: simulator -> epochs, as the bag reader does
 
-from transplanter_ident.ekf import run_sequence  # noqa: E402
-from transplanter_ident.metrics import stiffness_error  # noqa: E402
-from transplanter_ident.parameters import EstimatorConfig  # noqa: E402
-from transplanter_ident.scenarios import SCENARIOS, build_config  # noqa: E402
-from transplanter_ident.tuner import tune  # noqa: E402
+from transplanter_ident.config.parameters import EstimatorConfig  # noqa: E402
+from transplanter_ident.ekf.joint_ekf import run_sequence  # noqa: E402
+from transplanter_ident.evaluation.metrics import stiffness_error  # noqa: E402
+from transplanter_ident.sim.scenarios import SCENARIOS, build_config  # noqa: E402
+from transplanter_ident.tuning.tune import tune  # noqa: E402
 
 OBJECTIVES = ("mae", "nll")
 

@@ -20,10 +20,13 @@ sys.path[:0] = [str(ROOT), str(ROOT / "test")]
 
 from helpers import sim_samples  # noqa: E402
 
-from transplanter_ident.ekf import O_CF, O_CF_STD, O_CR, O_CR_STD, run_sequence  # noqa: E402
-from transplanter_ident.measurements import AssemblerSettings, EpochArrays, EpochAssembler, assemble  # noqa: E402
-from transplanter_ident.parameters import EstimatorConfig  # noqa: E402
-from transplanter_ident.sim import SensorNoise, SimConfig, simulate, sine_steering  # noqa: E402
+from transplanter_ident.config.parameters import EstimatorConfig  # noqa: E402
+from transplanter_ident.ekf.joint_ekf import run_sequence  # noqa: E402
+from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD  # noqa: E402
+from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble  # noqa: E402
+from transplanter_ident.epochs.epoch import EpochArrays  # noqa: E402
+from transplanter_ident.sim.signals import sine_steering  # noqa: E402
+from transplanter_ident.sim.simulator import SensorNoise, SimConfig, simulate  # noqa: E402
 
 TRUE_FRONT, TRUE_REAR = 8000.0, 10000.0
 

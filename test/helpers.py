@@ -8,9 +8,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-from transplanter_ident.measurements import AssemblerSettings, Epoch, EpochArrays, EpochAssembler, assemble
-from transplanter_ident.parameters import EstimatorConfig, FilterOptions, NoiseParams, VehicleParams
-from transplanter_ident.sim import SensorNoise, SimConfig, SimResult, simulate
+from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams, VehicleParams
+from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
+from transplanter_ident.epochs.epoch import Epoch, EpochArrays
+from transplanter_ident.sim.simulator import SensorNoise, SimConfig, SimResult, simulate
 
 Sample = tuple[str, float, tuple[float, ...]]
 

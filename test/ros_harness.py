@@ -85,12 +85,12 @@ def isolated(command: list[str]) -> list[str]:
 
 
 def estimator_command(*ros_args: str, options: Iterable[str] = ()) -> list[str]:
-    """The installed ``estimator`` next to this interpreter, else ``python -m transplanter_ident.node``.
+    """The installed ``estimator`` next to this interpreter, else ``python -m transplanter_ident.ros.node``.
 
     ``options`` (e.g. ``--executor single``) go before ``--ros-args``.
     """
     script = Path(sys.executable).parent / "estimator"
-    base = [str(script)] if script.is_file() else [sys.executable, "-m", "transplanter_ident.node"]
+    base = [str(script)] if script.is_file() else [sys.executable, "-m", "transplanter_ident.ros.node"]
     base = [*base, *options]
     return [*base, "--ros-args", *ros_args] if ros_args else base
 

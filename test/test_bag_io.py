@@ -1,4 +1,4 @@
-"""Bag I/O (transplanter_ident.bag_io): real MCAP bags written and read with rosbags and mcap, no mocks."""
+"""Bag I/O (transplanter_ident.bags): real MCAP bags written and read with rosbags and mcap, no mocks."""
 
 from __future__ import annotations
 
@@ -11,13 +11,12 @@ import pytest
 from mcap.reader import make_reader
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 
-from transplanter_ident import bag_io
-from transplanter_ident.bag_io import (
+import transplanter_ident.bags as bag_io
+from transplanter_ident.bags import (
     BagError,
     BagWriter,
     SimBagOptions,
     decode_message,
-    quaternion_yaw,
     read_bag,
     read_epochs,
     read_samples,
@@ -27,11 +26,12 @@ from transplanter_ident.bag_io import (
     write_sim_bag,
     yaw_quaternion,
 )
-from transplanter_ident.ekf import N_OUTPUTS
-from transplanter_ident.measurements import Rejection
-from transplanter_ident.params_file import EstimatorParams, FrameConfig, SteeringConfig, TopicConfig
-from transplanter_ident.scenarios import build_config
-from transplanter_ident.sim import simulate
+from transplanter_ident.config.params_file import EstimatorParams, FrameConfig, SteeringConfig, TopicConfig
+from transplanter_ident.ekf.layout import N_OUTPUTS
+from transplanter_ident.epochs.epoch import Rejection
+from transplanter_ident.epochs.frames import quaternion_yaw
+from transplanter_ident.sim.scenarios import build_config
+from transplanter_ident.sim.simulator import simulate
 
 TS = bag_io.TYPESTORE
 T = TS.types

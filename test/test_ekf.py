@@ -1,4 +1,4 @@
-"""Tests of the joint-state EKF driver code (transplanter_ident.ekf): online = offline, bad numbers, gate, P."""
+"""Tests of the joint-state EKF driver code (transplanter_ident.ekf.kernels): online = offline, bad numbers, gate, P."""
 
 from __future__ import annotations
 
@@ -9,26 +9,19 @@ import numpy as np
 import pytest
 from helpers import paper_config, simulate_epochs
 
-from transplanter_ident.ekf import (
-    N_OUTPUTS,
-    O_CF,
-    O_CR,
-    O_E0,
-    O_E1,
-    O_STATUS,
-    W_F,
+from transplanter_ident.config.parameters import EstimatorConfig, NoiseParams
+from transplanter_ident.ekf.entries import predict
+from transplanter_ident.ekf.joint_ekf import (
     Estimate,
     FilterArrays,
     JointEKF,
-    StepStatus,
-    predict,
     run_sequence,
     sequence_objective,
 )
-from transplanter_ident.measurements import Epoch, EpochArrays
-from transplanter_ident.model import work_buffer
-from transplanter_ident.parameters import EstimatorConfig, NoiseParams
-from transplanter_ident.sim import SimConfig
+from transplanter_ident.ekf.layout import N_OUTPUTS, O_CF, O_CR, O_E0, O_E1, O_STATUS, W_F, StepStatus
+from transplanter_ident.ekf.model import work_buffer
+from transplanter_ident.epochs.epoch import Epoch, EpochArrays
+from transplanter_ident.sim.simulator import SimConfig
 
 TRUE_CF, TRUE_CR = 8000.0, 10000.0
 DEFAULT = EstimatorConfig()

@@ -1,4 +1,4 @@
-"""Tests of transplanter_ident.health: rates, windows and the diagnostic levels (no ROS)."""
+"""Tests of transplanter_ident.evaluation.health: rates, windows and the diagnostic levels (no ROS)."""
 
 from __future__ import annotations
 
@@ -6,22 +6,19 @@ import math
 
 import pytest
 
-from transplanter_ident.ekf import Estimate, StepStatus
-from transplanter_ident.health import (
+from transplanter_ident.ekf.joint_ekf import Estimate
+from transplanter_ident.ekf.layout import StepStatus
+from transplanter_ident.epochs.epoch import Epoch, Rejection
+from transplanter_ident.evaluation.health import (
     ERROR,
     OK,
     WARN,
     HealthMonitor,
     HealthThresholds,
     InputMonitor,
-    LatencyStats,
-    RollingRms,
-    Throttle,
-    TimeWindow,
-    percentile,
     should_publish,
 )
-from transplanter_ident.measurements import Epoch, Rejection
+from transplanter_ident.evaluation.windows import LatencyStats, RollingRms, Throttle, TimeWindow, percentile
 
 TH = HealthThresholds(stale_timeout=1.0, window=10.0, converged_rel_std=0.05, min_steering_rms=0.02,
                       min_yaw_rate_rms=0.02, min_window_epochs=5)

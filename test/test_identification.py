@@ -25,9 +25,11 @@ sys.path.append(str(Path(__file__).resolve().parent.parent))
 
 from helpers import paper_config, simulate_epochs  # noqa: E402
 
-from transplanter_ident.ekf import O_CF, O_CF_STD, O_CR, O_CR_STD, O_STATUS, StepStatus, run_sequence  # noqa: E402
-from transplanter_ident.parameters import EstimatorConfig  # noqa: E402
-from transplanter_ident.sim import SensorNoise, SimConfig, StiffnessSchedule, sine_steering  # noqa: E402
+from transplanter_ident.config.parameters import EstimatorConfig  # noqa: E402
+from transplanter_ident.ekf.joint_ekf import run_sequence  # noqa: E402
+from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD, O_STATUS, StepStatus  # noqa: E402
+from transplanter_ident.sim.signals import StiffnessSchedule, sine_steering  # noqa: E402
+from transplanter_ident.sim.simulator import SensorNoise, SimConfig  # noqa: E402
 
 TRUE_CF, TRUE_CR = 8000.0, 10000.0
 SEEDS = tuple(range(10))

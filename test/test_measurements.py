@@ -1,4 +1,4 @@
-"""Tests of the GNSS/steering -> epoch conversion (transplanter_ident.measurements)."""
+"""Tests of the GNSS/steering -> epoch conversion (transplanter_ident.epochs.assembler)."""
 
 from __future__ import annotations
 
@@ -11,17 +11,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.integrate import quad
 
-from transplanter_ident.measurements import (
-    AssemblerSettings,
-    Epoch,
-    EpochAssembler,
-    assemble,
-    interval_line,
-    quaternion_yaw,
-    wrap_angle,
-)
-from transplanter_ident.parameters import VehicleParams
-from transplanter_ident.sim import SimConfig, simulate
+from transplanter_ident.config.parameters import VehicleParams
+from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
+from transplanter_ident.epochs.epoch import Epoch
+from transplanter_ident.epochs.frames import quaternion_yaw, wrap_angle
+from transplanter_ident.epochs.steering_line import interval_line
+from transplanter_ident.sim.simulator import SimConfig, simulate
 
 STEERING_RATE = 50.0  # Hz
 

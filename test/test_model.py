@@ -10,15 +10,11 @@ import pytest
 import scipy.linalg
 from scipy.integrate import solve_ivp
 
-from transplanter_ident.ekf import W_F, FilterArrays, predict
-from transplanter_ident.model import (
-    EXACT,
-    W_DE_F,
-    W_DE_R,
-    W_DM_F,
-    W_DM_R,
-    W_E,
-    W_M,
+from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, VehicleParams
+from transplanter_ident.ekf.entries import predict
+from transplanter_ident.ekf.joint_ekf import FilterArrays
+from transplanter_ident.ekf.layout import EXACT, W_DE_F, W_DE_R, W_DM_F, W_DM_R, W_E, W_F, W_M
+from transplanter_ident.ekf.model import (
     continuous_matrix,
     discrete_matrices,
     discretize,
@@ -26,7 +22,6 @@ from transplanter_ident.model import (
     vehicle_array,
     work_buffer,
 )
-from transplanter_ident.parameters import EstimatorConfig, FilterOptions, VehicleParams
 
 VEHICLE = VehicleParams()
 COMBINATIONS = list(itertools.product(("exact", "euler"), ("log", "linear"), ("heading", "yaw_rate")))

@@ -22,13 +22,21 @@ import pytest
 import ros_harness
 from ros_harness import ROOT, estimator_command, isolated, ros_env, run_scenario, stamp_fields
 
-from transplanter_ident import bag_io
-from transplanter_ident.ekf import JointEKF, StepStatus
-from transplanter_ident.health import should_publish
-from transplanter_ident.measurements import EpochAssembler
-from transplanter_ident.parameters import NoiseParams
-from transplanter_ident.params_file import EstimatorParams, ParamsError, params_to_flat, read_params_file
-from transplanter_ident.sim import SimConfig, simulate, sine_steering
+import transplanter_ident.bags as bag_io
+from transplanter_ident.config.parameters import NoiseParams
+from transplanter_ident.config.params_file import (
+    EstimatorParams,
+    ParamsError,
+    params_to_flat,
+    read_params_file,
+)
+from transplanter_ident.ekf.joint_ekf import JointEKF
+from transplanter_ident.ekf.layout import StepStatus
+from transplanter_ident.epochs.assembler import EpochAssembler
+from transplanter_ident.epochs.frames import quaternion_yaw
+from transplanter_ident.evaluation.health import should_publish
+from transplanter_ident.sim.signals import sine_steering
+from transplanter_ident.sim.simulator import SimConfig, simulate
 
 CONFIG = ROOT / "config" / "estimator.yaml"
 VEL, HEAD, STEER = "/gnss/vel", "/gnss/heading", "/steering_angle"
@@ -110,7 +118,7 @@ def specs_to_samples(specs: list[dict[str, Any]], joint: str = "front_steering",
             q = tuple(f[f"{prefix}.{axis}"] for axis in "xyzw")
             if not all(math.isfinite(v) for v in q) or sum(v * v for v in q) < 1e-12:
                 continue
-            samples.append(("heading", spec_stamp(spec), (bag_io.quaternion_yaw(*q) + rotate,)))
+            samples.append(("heading", spec_stamp(spec), (quaternion_yaw(*q) + rotate,)))
         elif joint in f["name"]:
             samples.append(("steering", spec_stamp(spec), (f["position"][f["name"].index(joint)],)))
     return samples
@@ -123,7 +131,7 @@ def offline_outputs(samples: list, params: EstimatorParams, noise_switch: dict[i
     ``noise_switch``: sample index -> new noise applied before that sample; ``resets``: sample
     indices before which filter and assembler restart.
     """
-    from transplanter_ident.node import assembler_settings
+    from transplanter_ident.ros.node import assembler_settings
 
     assembler = EpochAssembler(assembler_settings(params))
     ekf = JointEKF(params.config)
@@ -200,7 +208,7 @@ def record_spec(*, diagnostics: bool = False) -> dict[str, list[str]]:
 
 
 def test_every_params_file_key_is_declared() -> None:
-    from transplanter_ident.node import NODE_PARAMETERS, parameter_defaults
+    from transplanter_ident.ros.node import NODE_PARAMETERS, parameter_defaults
 
     declared = parameter_defaults()
     assert set(params_to_flat(EstimatorParams())) <= set(declared)
@@ -214,7 +222,7 @@ def test_every_params_file_key_is_declared() -> None:
 
 
 def test_descriptors_read_only_and_ranges() -> None:
-    from transplanter_ident.node import descriptor_for, is_read_only, parameter_defaults
+    from transplanter_ident.ros.node import descriptor_for, is_read_only, parameter_defaults
 
     defaults = parameter_defaults()
     for name in ("topics.velocity", "topics.steering_type", "frames.heading", "vehicle.mass", "vehicle.lf",
@@ -237,7 +245,7 @@ def test_descriptors_read_only_and_ranges() -> None:
     ("diagnostics.stale_timeout", -1.0, "stale_timeout"),
 ])
 def test_validate_rejects_with_a_reason(key: str, value: Any, reason: str) -> None:
-    from transplanter_ident.node import parameter_defaults, validate
+    from transplanter_ident.ros.node import parameter_defaults, validate
 
     flat = parameter_defaults()
     validate(flat)
@@ -248,8 +256,8 @@ def test_validate_rejects_with_a_reason(key: str, value: Any, reason: str) -> No
 
 def test_stamp_conversions_round_trip() -> None:
     """Node and bag reader share measurements.stamp_seconds; the node's inverse rounds to the nanosecond."""
-    from transplanter_ident.measurements import stamp_seconds
-    from transplanter_ident.node import seconds_to_stamp
+    from transplanter_ident.epochs.frames import stamp_seconds
+    from transplanter_ident.ros.node import seconds_to_stamp
 
     rng = np.random.default_rng(0)
     for sec, nanosec in zip(rng.integers(0, 2_000_000_000, 200).tolist(), rng.integers(0, 10**9, 200).tolist(),
@@ -293,7 +301,7 @@ def sample_bag(tmp_path: Path) -> Path:
                 wanted = {VEL, HEAD, STEER}
                 if sum(c.msgcount for c in reader.connections if c.topic in wanted) <= 8000:
                     return candidate
-    from transplanter_ident.scenarios import build_config
+    from transplanter_ident.sim.scenarios import build_config
 
     path = tmp_path / "sine_bag"
     bag_io.write_sim_bag(simulate(build_config("sine", duration=30.0, gnss_rate=10.0)), path)
@@ -332,7 +340,7 @@ def _flatten_rosbags(msg: Any, prefix: str = "") -> dict[str, Any]:
 def replay_csv(bag: Path, tmp_path: Path) -> list[dict[str, float]]:
     """Run the `replay` command on the bag with the same parameters; its CSV rows."""
     script = Path(sys.executable).parent / "replay"
-    command = [str(script)] if script.is_file() else [sys.executable, "-m", "transplanter_ident.replay"]
+    command = [str(script)] if script.is_file() else [sys.executable, "-m", "transplanter_ident.cli.replay"]
     out = tmp_path / "replay.csv"
     result = subprocess.run([*command, str(bag), "--params-file", str(CONFIG), "--csv", str(out), "--quiet"],
                             capture_output=True, text=True, timeout=300, cwd=ROOT,
@@ -348,9 +356,11 @@ def test_online_equals_offline(tmp_path: Path, executor: str) -> None:
 
     With either executor of ``estimator --executor``: the EventsExecutor (default) and rclpy's default one.
     """
-    from transplanter_ident.ekf import O_CF, O_CF_STD, O_CR, O_CR_STD, O_STATUS, run_sequence
-    from transplanter_ident.measurements import EpochArrays, assemble
-    from transplanter_ident.node import assembler_settings
+    from transplanter_ident.ekf.joint_ekf import run_sequence
+    from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD, O_STATUS
+    from transplanter_ident.epochs.assembler import assemble
+    from transplanter_ident.epochs.epoch import EpochArrays
+    from transplanter_ident.ros.node import assembler_settings
 
     params = EstimatorParams()
     bag = sample_bag(tmp_path)
@@ -511,7 +521,7 @@ def test_bad_input_is_reported_and_never_kills_or_poisons_the_node() -> None:
     assert max_relative_difference(online, reference) <= 1e-9
 
     # heading wraps at +-pi: no jump, the same numbers as a twin drive turned by -pi/2 (never near +-pi)
-    yaws = [bag_io.quaternion_yaw(s["fields"]["quaternion.x"], s["fields"]["quaternion.y"],
+    yaws = [quaternion_yaw(s["fields"]["quaternion.x"], s["fields"]["quaternion.y"],
                                   s["fields"]["quaternion.z"], s["fields"]["quaternion.w"])
             for s in published if s["topic"] == HEAD and math.isfinite(s["fields"]["quaternion.z"])]
     wraps = sum(1 for a, b in zip(yaws, yaws[1:], strict=False) if abs(b - a) > math.pi)

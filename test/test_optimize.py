@@ -8,25 +8,12 @@ import numpy as np
 import pytest
 from helpers import simulate_epochs
 
-from transplanter_ident import ekf
-from transplanter_ident.optimize import (
-    Box,
-    IpsoSettings,
-    PsoSettings,
-    ackley,
-    detection_radius,
-    inertia,
-    logistic_map,
-    minimize,
-    pso_for_budget,
-    random_search,
-    rastrigin,
-    settings_for,
-    shifted,
-)
-from transplanter_ident.parameters import EstimatorConfig, FilterOptions, NoiseParams
-from transplanter_ident.scenarios import build_config
-from transplanter_ident.tuning import (
+import transplanter_ident.ekf as ekf
+from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams
+from transplanter_ident.sim.scenarios import build_config
+from transplanter_ident.tuning.benchmark_functions import ackley, random_search, rastrigin, shifted
+from transplanter_ident.tuning.box import Box
+from transplanter_ident.tuning.problem import (
     NAMES,
     TuningProblem,
     batch_objective,
@@ -34,6 +21,16 @@ from transplanter_ident.tuning import (
     noise_to_vector,
     search_box,
     vector_to_noise,
+)
+from transplanter_ident.tuning.pso import (
+    IpsoSettings,
+    PsoSettings,
+    detection_radius,
+    inertia,
+    logistic_map,
+    minimize,
+    pso_for_budget,
+    settings_for,
 )
 
 RASTRIGIN_BOX = Box.cube(6, -5.12, 5.12)

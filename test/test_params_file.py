@@ -1,4 +1,4 @@
-"""Tests of transplanter_ident.params_file: loading, layering, errors, writing, and the real rcl parser."""
+"""Tests of transplanter_ident.config.params_file: loading, layering, errors, writing, and the real rcl parser."""
 
 from __future__ import annotations
 
@@ -13,10 +13,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from transplanter_ident import cli_util
-from transplanter_ident.cli_util import CliError
-from transplanter_ident.parameters import EstimatorConfig, FilterOptions, NoiseParams, VehicleParams
-from transplanter_ident.params_file import (
+import transplanter_ident.files as cli_util
+from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams, VehicleParams
+from transplanter_ident.config.params_file import (
     EstimatorParams,
     FrameConfig,
     ParamsError,
@@ -28,6 +27,7 @@ from transplanter_ident.params_file import (
     read_params_file,
     write_params_yaml,
 )
+from transplanter_ident.files import OutputError
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_FILE = ROOT / "config" / "estimator.yaml"
@@ -230,12 +230,12 @@ def test_atomic_writer_leaves_no_temp_file_on_failure(
     flat = params_to_flat(EstimatorParams())
     directory = tmp_path / "is_a_dir"
     directory.mkdir()
-    with pytest.raises((OSError, CliError)):
+    with pytest.raises((OSError, OutputError)):
         write_params_yaml(directory, flat, "x")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["is_a_dir"]
     assert list(directory.iterdir()) == []
 
-    with pytest.raises((OSError, CliError)):
+    with pytest.raises((OSError, OutputError)):
         write_params_yaml(tmp_path / "missing_dir" / "p.yaml", flat, "x")
 
     target = _write(tmp_path / "keep.yaml", "old content\n")

@@ -16,10 +16,10 @@ from rosbags.rosbag2 import Reader, StoragePlugin
 from rosbags.rosbag2 import Writer as RosbagsWriter
 from rosbags.typesys import Stores, get_typestore
 
-from transplanter_ident.cli_util import Progress
-from transplanter_ident.metrics import CSV_COLUMNS
-from transplanter_ident.scenarios import build_config
-from transplanter_ident.sim import simulate
+from transplanter_ident.evaluation.metrics import CSV_COLUMNS
+from transplanter_ident.files import Progress
+from transplanter_ident.sim.scenarios import build_config
+from transplanter_ident.sim.simulator import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 TS = get_typestore(Stores.ROS2_JAZZY)  # independent of bag_io's own typestore object

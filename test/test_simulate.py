@@ -11,8 +11,8 @@ from helpers import run_command as run
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
-from transplanter_ident.scenarios import SCENARIOS, build_config
-from transplanter_ident.sim import SimConfig
+from transplanter_ident.sim.scenarios import SCENARIOS, build_config
+from transplanter_ident.sim.simulator import SimConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 TS = get_typestore(Stores.ROS2_JAZZY)

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import pytest
 
-from transplanter_ident import tuner
-from transplanter_ident.demo import ensure_bag
-from transplanter_ident.ekf import run_sequence
-from transplanter_ident.metrics import stiffness_error
-from transplanter_ident.params_file import EstimatorParams, load_params, read_params_file
+import transplanter_ident.cli.tuner as tuner
+from transplanter_ident.bags.samples import ensure_bag
+from transplanter_ident.config.params_file import EstimatorParams, load_params, read_params_file
+from transplanter_ident.ekf.joint_ekf import run_sequence
+from transplanter_ident.evaluation.metrics import stiffness_error
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULTS = ROOT / "config" / "estimator.yaml"
@@ -30,9 +30,9 @@ def sample_bags(tmp_path_factory) -> dict[str, Path]:  # noqa: ANN001
 @pytest.fixture(scope="module")
 def short_bag(tmp_path_factory) -> Path:  # noqa: ANN001
     """A 5 s bag: about 25 epochs, too short to tune."""
-    from transplanter_ident.bag_io import write_sim_bag
-    from transplanter_ident.scenarios import build_config
-    from transplanter_ident.sim import simulate
+    from transplanter_ident.bags import write_sim_bag
+    from transplanter_ident.sim.scenarios import build_config
+    from transplanter_ident.sim.simulator import simulate
 
     path = tmp_path_factory.mktemp("short") / "short"
     write_sim_bag(simulate(build_config("sine", duration=5.0, seed=0)), path)
@@ -45,7 +45,7 @@ def tuned_run(sample_bags, tmp_path_factory) -> tuple[Path, str, Path]:  # noqa:
     out = tmp_path_factory.mktemp("tuned")
     yaml_path, report = out / "tuned.yaml", out / "report"
     result = subprocess.run(
-        [sys.executable, "-m", "transplanter_ident.tuner", str(sample_bags["step20-ccw"]), "-o", str(yaml_path),
+        [sys.executable, "-m", "transplanter_ident.cli.tuner", str(sample_bags["step20-ccw"]), "-o", str(yaml_path),
          "--params-file", str(DEFAULTS), "--seed", "3", "--objective", "mae", "--report", str(report)],
         capture_output=True, text=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=300)
     assert result.returncode == 0, result.stderr
@@ -166,7 +166,7 @@ def test_corrupt_bag_is_one_line(tmp_path, capsys) -> None:  # noqa: ANN001
 
 
 def test_too_short_bag_says_how_many_epochs(short_bag, tmp_path, capsys) -> None:  # noqa: ANN001
-    from transplanter_ident.bag_io import read_epochs
+    from transplanter_ident.bags import read_epochs
 
     count = len(read_epochs(short_bag, EstimatorParams())[0])
     line = _one_line_error(capsys, tuner.main([str(short_bag), "-o", str(tmp_path / "o.yaml")]))
@@ -206,7 +206,7 @@ def test_unwritable_output_at_write_time_is_one_line(sample_bags, tmp_path, caps
     def refuse(*args, dir=None, **kwargs):  # noqa: ANN002, ANN003, ANN202, A002
         raise PermissionError(13, "Permission denied", str(dir))
 
-    monkeypatch.setattr("transplanter_ident.cli_util.tempfile.mkstemp", refuse)
+    monkeypatch.setattr("transplanter_ident.files.tempfile.mkstemp", refuse)
     target = tmp_path / "o.yaml"
     assert tuner.main([str(sample_bags["step20-ccw"]), "-o", str(target), "--particles", "2", "--iterations", "1"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
@@ -222,7 +222,7 @@ def test_failed_write_leaves_no_half_written_yaml(sample_bags, tmp_path, capsys,
     def broken_replace(src, dst) -> None:  # noqa: ANN001
         raise OSError(28, "No space left on device", str(dst))
 
-    monkeypatch.setattr("transplanter_ident.cli_util.os.replace", broken_replace)
+    monkeypatch.setattr("transplanter_ident.files.os.replace", broken_replace)
     assert tuner.main([str(sample_bags["step20-ccw"]), "-o", str(target), "--particles", "2", "--iterations", "1"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     errors = [line for line in err if "error" in line]
@@ -250,7 +250,7 @@ def test_bad_params_file_is_one_line(sample_bags, tmp_path, capsys) -> None:  # 
 
 
 def test_console_script_bad_flag_subprocess(tmp_path) -> None:  # noqa: ANN001
-    result = subprocess.run([sys.executable, "-m", "transplanter_ident.tuner", "x", "-o", str(tmp_path / "o.yaml"),
+    result = subprocess.run([sys.executable, "-m", "transplanter_ident.cli.tuner", "x", "-o", str(tmp_path / "o.yaml"),
                              "--particles", "0"], capture_output=True, text=True, cwd=ROOT,
                             env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=120)
     assert result.returncode == 2

@@ -8,20 +8,20 @@ from pathlib import Path
 
 __version__ = "0.1.0"
 
-_COMPILED_MODULES = ("model.py", "ekf.py", "tuning.py")
+_COMPILED_PACKAGES = ("ekf", "tuning")
 
 
 def _numba_cache_dir() -> Path:
     """A numba cache folder keyed by the compiled sources.
 
-    numba invalidates a cached function only when its own file changes, but ekf.py's kernels
-    inline model.py's: keying the folder by all compiled sources keeps the cache honest.
+    numba invalidates a cached function only when its own file changes, but the kernels inline
+    code of other modules: keying the folder by all compiled sources keeps the cache honest.
     """
     here = Path(__file__).resolve().parent
     digest = hashlib.sha256()
-    for name in _COMPILED_MODULES:
-        path = here / name
-        if path.exists():
+    for package in _COMPILED_PACKAGES:
+        for path in sorted((here / package).glob("*.py")):
+            digest.update(path.name.encode())
             digest.update(path.read_bytes())
     root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
     return root / "transplanter_ident" / f"numba-{digest.hexdigest()[:16]}"

@@ -21,7 +21,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from transplanter_ident.cli_util import CliError, atomic_output_file, cli_main
+from transplanter_ident.cli.util import CliError, cli_main
+from transplanter_ident.files import atomic_output_file
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -51,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _load_params(paths: list[str]):  # noqa: ANN202 - EstimatorParams, imported lazily
-    from transplanter_ident.params_file import EstimatorParams, load_params
+    from transplanter_ident.config.params_file import EstimatorParams, load_params
 
     return load_params(paths) if paths else EstimatorParams()
 
@@ -60,7 +61,7 @@ def write_csv(path: str | Path, epochs, outputs) -> int:  # noqa: ANN001 - Epoch
     """Write the replay CSV (header + one row per epoch) atomically; returns the number of rows."""
     import numpy as np
 
-    from transplanter_ident.metrics import CSV_COLUMNS, csv_rows
+    from transplanter_ident.evaluation.metrics import CSV_COLUMNS, csv_rows
 
     rows = csv_rows(epochs, outputs)
     fmt = ["%.6f"] + ["%.10g"] * (rows.shape[1] - 1)  # t: us (a float64 of epoch seconds holds ~0.2 us)
@@ -72,9 +73,10 @@ def write_csv(path: str | Path, epochs, outputs) -> int:  # noqa: ANN001 - Epoch
 def _run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from transplanter_ident.bag_io import read_bag, summarize_rejections, write_output_bag
-    from transplanter_ident.ekf import O_CF, O_CF_STD, O_CR, O_CR_STD, run_sequence
-    from transplanter_ident.metrics import format_table2, propagated, stiffness_error, table2_row
+    from transplanter_ident.bags import read_bag, summarize_rejections, write_output_bag
+    from transplanter_ident.ekf.joint_ekf import run_sequence
+    from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD
+    from transplanter_ident.evaluation.metrics import format_table2, propagated, stiffness_error, table2_row
 
     if args.output and Path(args.output).exists() and not args.force:
         raise CliError(f"{args.output}: already exists (choose another path, or pass --force)")

@@ -1,6 +1,6 @@
 """The `simulate` command: write a synthetic MCAP bag with the input topics and the ground truth.
 
-The scenario (``--scenario``, see :mod:`transplanter_ident.scenarios`) is simulated with
+The scenario (``--scenario``, see :mod:`transplanter_ident.sim.scenarios`) is simulated with
 :func:`transplanter_ident.sim.simulate` and written with :func:`transplanter_ident.bag_io.write_sim_bag`:
 
 * ``/gnss/vel`` geometry_msgs/TwistStamped, ENU (``--velocity-type twist-cov``, ``--velocity-frame ned``);
@@ -18,8 +18,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from transplanter_ident.cli_util import CliError, cli_main
-from transplanter_ident.scenarios import DEFAULT_SCENARIO, SCENARIOS
+from transplanter_ident.cli.util import CliError, cli_main
+from transplanter_ident.sim.scenarios import DEFAULT_SCENARIO, SCENARIOS
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -69,9 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from transplanter_ident.bag_io import SimBagOptions, write_sim_bag
-    from transplanter_ident.scenarios import build_config
-    from transplanter_ident.sim import simulate
+    from transplanter_ident.bags import SimBagOptions, write_sim_bag
+    from transplanter_ident.sim.scenarios import build_config
+    from transplanter_ident.sim.simulator import simulate
 
     try:
         config = build_config(args.scenario, duration=args.duration, seed=args.seed, speed=args.speed,

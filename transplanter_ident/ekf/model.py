@@ -25,17 +25,35 @@ loop. Vehicle constants are passed as ``vehicle_array = [mass, lf, lr, iz]``.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
-from .parameters import VehicleParams
+from transplanter_ident.config.parameters import VehicleParams
+from transplanter_ident.ekf.layout import (
+    EULER,
+    EXACT,
+    VEH_IZ,
+    VEH_LF,
+    VEH_LR,
+    VEH_MASS,
+    W_DE_F,
+    W_DE_R,
+    W_DM_F,
+    W_DM_R,
+    W_DT_F,
+    W_DT_R,
+    W_E,
+    W_M,
+    W_NDT_F,
+    W_NDT_R,
+    W_NT,
+    W_T,
+    WORK_SIZE,
+    WORK_SLOTS,
+)
+from transplanter_ident.jit import entry_kernel, inline_kernel, sized_kernel
 
 TAYLOR_ORDER = 10
 SCALING_NORM = 0.5
-
-# discretisation codes
-EXACT = 0
-EULER = 1
 
 
 def vehicle_array(vehicle: VehicleParams) -> np.ndarray:
@@ -43,19 +61,12 @@ def vehicle_array(vehicle: VehicleParams) -> np.ndarray:
     return np.array([vehicle.mass, vehicle.lf, vehicle.lr, vehicle.yaw_inertia], dtype=np.float64)
 
 
-# work-buffer slots (ws[slot, i, j]); indexing one buffer avoids creating array views per step
-W_E, W_DE_F, W_DE_R, W_M, W_DM_F, W_DM_R = 0, 1, 2, 3, 4, 5
-W_T, W_DT_F, W_DT_R, W_NT, W_NDT_F, W_NDT_R = 6, 7, 8, 9, 10, 11
-WORK_SLOTS = 20
-WORK_SIZE = 5
-
-
 def work_buffer() -> np.ndarray:
-    """A work buffer for the kernels of this module and of ekf.py."""
+    """A work buffer (layout.W_*) for the kernels of this module and of kernels.py; one buffer, no per-step views."""
     return np.zeros((WORK_SLOTS, WORK_SIZE, WORK_SIZE))
 
 
-@numba.njit(cache=True, inline='always')
+@inline_kernel
 def continuous_matrix(cf, cr, vx, vehicle, with_heading, ws):
     """Fill M (eq. 4) and dM/dCf, dM/dCr over [motion states, delta, d delta/dt] in ws.
 
@@ -64,7 +75,7 @@ def continuous_matrix(cf, cr, vx, vehicle, with_heading, ws):
     exponential yields the response to a steering ramp over the interval. The discretisation
     reads only rows < nd (``mul_top`` takes the input rows [[0, 1], [0, 0]] as arguments).
     """
-    mass, lf, lr, iz = vehicle[0], vehicle[1], vehicle[2], vehicle[3]
+    mass, lf, lr, iz = vehicle[VEH_MASS], vehicle[VEH_LF], vehicle[VEH_LR], vehicle[VEH_IZ]
     nd = 3 if with_heading else 2
     for s in range(W_M, W_DM_R + 1):  # M is (nd + 2) square; the rest of the 5 x 5 slot is not part of it
         for i in range(nd + 2):
@@ -98,7 +109,7 @@ def _make_discretize(nd):
     """Compile the discretisation for nd motion states (sizes become compile-time constants)."""
     size = nd + 2
 
-    @numba.njit(cache=True, inline='always')
+    @inline_kernel
     def mul_top(ws, left, right, out, in00, in01, in11, accumulate):
         """ws[out][:nd] (+)= (ws[left] @ ws[right])[:nd]; right's input rows [[in00, in01], [0, in11]]."""
         for i in range(nd):
@@ -115,7 +126,7 @@ def _make_discretize(nd):
                 else:
                     ws[out, i, j] = acc
 
-    @numba.njit(cache=True, inline='always')
+    @inline_kernel
     def product_rule(ws, left, left_f, left_r, right, right_f, right_r, in00, in01, in11):
         """N = L R and dN = dL R + L dR for both stiffnesses, into W_NT, W_NDT_F, W_NDT_R.
 
@@ -127,7 +138,7 @@ def _make_discretize(nd):
         mul_top(ws, left_r, right, W_NDT_R, in00, in01, in11, False)
         mul_top(ws, left, right_r, W_NDT_R, 0.0, 0.0, 0.0, True)
 
-    @numba.njit(cache=True)
+    @sized_kernel
     def discretize_fixed(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, ws):
         continuous_matrix(cf, cr, vx, vehicle, nd == 3, ws)
         for i in range(nd):
@@ -192,7 +203,7 @@ discretize_yaw_rate = _make_discretize(2)
 discretize_heading = _make_discretize(3)
 
 
-@numba.njit(cache=True)
+@entry_kernel
 def discretize(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, with_heading, method, ws):
     """Discretise eq. (4) over dt: E, dE/dtheta_f, dE/dtheta_r in ws[W_E], ws[W_DE_F], ws[W_DE_R].
 
@@ -223,12 +234,12 @@ def discrete_matrices(
     discretize(cornering_stiffness_front, cornering_stiffness_rear, 1.0, 1.0, speed, dt,
                vehicle_array(vehicle), with_heading, code, ws)
     nd = 3 if with_heading else 2
-    return ws[0, :nd, :nd].copy(), ws[0, :nd, nd].copy()
+    return ws[W_E, :nd, :nd].copy(), ws[W_E, :nd, nd].copy()
 
 
 def steady_state_yaw_rate(vehicle: VehicleParams, cf: float, cr: float, speed: float, steering: float) -> float:
     """Steady-state yaw rate of eq. (4) for a constant steering angle."""
     ws = work_buffer()
     continuous_matrix(cf, cr, speed, vehicle_array(vehicle), False, ws)
-    a, b = ws[3, :2, :2], ws[3, :2, 2]
+    a, b = ws[W_M, :2, :2], ws[W_M, :2, 2]
     return float(np.linalg.solve(a, -b * steering)[1])

@@ -38,10 +38,12 @@ from dataclasses import dataclass, replace
 import numba
 import numpy as np
 
-from .ekf import MAE, NLL, FilterArrays, objective_4, objective_5, objective_kernel
-from .measurements import EpochArrays
-from .optimize import Box
-from .parameters import EstimatorConfig, FilterOptions, NoiseParams
+from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams
+from transplanter_ident.ekf.entries import objective_4, objective_5, objective_kernel
+from transplanter_ident.ekf.joint_ekf import FilterArrays
+from transplanter_ident.ekf.layout import MAE, NLL
+from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.tuning.box import Box
 
 OBJECTIVES = {"mae": MAE, "nll": NLL}
 NAMES = ("q_vy", "q_r", "q_cf", "q_cr", "r_vy", "r_2")

@@ -14,7 +14,7 @@ Publications, once per processed epoch and stamped with the epoch's time:
     ~/cornering_stiffness_std  geometry_msgs/Vector3Stamped  1-sigma of Cf, Cr
     ~/model_output             geometry_msgs/TwistStamped    linear.y = vy, angular.z = r of the model
     ~/measurement              geometry_msgs/TwistStamped    linear.x = vx, linear.y = vy, angular.z = r at the CG
-    /diagnostics               diagnostic_msgs/DiagnosticArray, 1 Hz (levels from transplanter_ident.health)
+    /diagnostics               diagnostic_msgs/DiagnosticArray, 1 Hz (levels from transplanter_ident.evaluation.health)
 Service: ~/reset (std_srvs/Trigger) restarts the filter and the assembler; so does a backward jump of a
 simulated ROS clock (use_sim_time with a replayed bag that loops).
 
@@ -50,10 +50,13 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
-from .ekf import Estimate, JointEKF
-from .health import HealthMonitor, HealthReport, HealthThresholds, Throttle, should_publish
-from .measurements import AssemblerSettings, Epoch, EpochAssembler, Rejection, stamp_seconds
-from .params_file import EstimatorParams, ParamsError, flat_to_params, params_to_flat
+from transplanter_ident.config.params_file import EstimatorParams, ParamsError, flat_to_params, params_to_flat
+from transplanter_ident.ekf.joint_ekf import Estimate, JointEKF
+from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler
+from transplanter_ident.epochs.epoch import Epoch, Rejection
+from transplanter_ident.epochs.frames import stamp_seconds
+from transplanter_ident.evaluation.health import HealthMonitor, HealthReport, HealthThresholds, should_publish
+from transplanter_ident.evaluation.windows import Throttle
 
 NODE_NAME = "estimator"
 OUTPUT_FRAME_ID = "base_link"  # the body frame at the CG, as replay's output bag (bag_io.OUTPUT_FRAME_ID)

@@ -1,101 +1,35 @@
-"""Shared plumbing of the command-line tools (replay, simulate, tuner): errors, atomic output, progress.
+"""Atomic output files and directories, one-line messages and coarse progress (DESIGN.md section 6).
 
-No ROS and no numerics here; every CLI uses the same three pieces:
-
-* :func:`run_cli` runs a command body and turns any exception into one line on stderr,
-  ``<prog>: error: <message>``, and a non-zero exit code (DESIGN.md section 6). With
-  ``debug=True`` the traceback is printed first. Typical use::
-
-      def main(argv=None) -> int:
-          parser = build_parser()
-          args = parser.parse_args(argv)
-          return run_cli(parser.prog, lambda: _run(args), debug=args.debug)
-
-  Raise :class:`CliError` (or any ``ValueError``/``OSError`` with a clear message, such as
-  ``bag_io.BagError`` or ``params_file.ParamsError``) for expected failures; anything else is
-  reported as an internal error that names its exception type.
 * :func:`atomic_write_text`, :func:`atomic_output_file` and :func:`atomic_output_dir` write
   output files and directories atomically: into a temporary name in the target's directory,
   then ``os.replace``; on failure the temporary is removed and the target is untouched.
-* :class:`Progress` prints coarse progress of long jobs to stderr.
+* :func:`one_line` squeezes a message to one line; :class:`Progress` prints coarse progress of
+  long jobs to stderr.
+
+No ROS and no numerics: every layer that writes a file uses these.
 """
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import os
 import shutil
 import sys
 import tempfile
 import time
-import traceback
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, TextIO
 
-#: exit code of a failed command (argparse uses 2 for usage errors)
-EXIT_FAILURE = 1
-#: exit code after Ctrl-C
-EXIT_INTERRUPTED = 130
 
-
-class CliError(Exception):
-    """An expected failure with a message fit for the user (one line)."""
+class OutputError(ValueError):
+    """An output path that cannot be written (message fit for the user, one line)."""
 
 
 def one_line(message: object) -> str:
     """Collapse a message to a single line (no newlines, runs of whitespace squeezed)."""
     return " ".join(str(message).split())
 
-
-def _describe(exc: BaseException) -> str:
-    text = one_line(exc)
-    if isinstance(exc, (CliError, ValueError)) and text:
-        return text
-    if isinstance(exc, OSError) and exc.strerror:
-        name = exc.filename if exc.filename is not None else ""
-        return f"{name}: {exc.strerror}" if name else exc.strerror
-    if isinstance(exc, MemoryError):
-        return "out of memory"
-    kind = type(exc).__name__
-    return f"internal error: {kind}: {text} (run with --debug for the traceback)" if text else (
-        f"internal error: {kind} (run with --debug for the traceback)")
-
-
-def run_cli(prog: str, body: Callable[[], int | None], *, debug: bool = False,
-            stderr: TextIO | None = None) -> int:
-    """Run ``body`` and return its exit code (None counts as 0).
-
-    Any exception ends as ``<prog>: error: <one-line message>`` on stderr and exit code 1
-    (130 after Ctrl-C), with no traceback unless ``debug``. ``SystemExit`` passes through.
-    """
-    err = stderr if stderr is not None else sys.stderr
-    try:
-        code = body()
-        return 0 if code is None else int(code)
-    except SystemExit:
-        raise
-    except KeyboardInterrupt:
-        if debug:
-            traceback.print_exc(file=err)
-        print(f"{prog}: interrupted", file=err)
-        return EXIT_INTERRUPTED
-    except BaseException as exc:  # noqa: BLE001 - the point is to catch everything
-        if debug:
-            traceback.print_exc(file=err)
-        print(f"{prog}: error: {_describe(exc)}", file=err)
-        return EXIT_FAILURE
-
-
-def cli_main(parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace], int | None],
-             argv: list[str] | None = None) -> int:
-    """Parse ``argv`` and run ``run(args)`` under :func:`run_cli` (the parser has ``--debug``)."""
-    args = parser.parse_args(argv)
-    return run_cli(parser.prog, lambda: run(args), debug=args.debug)
-
-
-# --------------------------------------------------------------------------- atomic output
 
 
 @contextlib.contextmanager
@@ -108,10 +42,10 @@ def atomic_output_file(path: str | Path, mode: str = "w", *, encoding: str | Non
     """
     target = Path(path)
     if target.is_dir():
-        raise CliError(f"{target}: is a directory, cannot write a file there")
+        raise OutputError(f"{target}: is a directory, cannot write a file there")
     parent = target.parent if str(target.parent) else Path(".")
     if not parent.is_dir():
-        raise CliError(f"{target}: directory {parent} does not exist")
+        raise OutputError(f"{target}: directory {parent} does not exist")
     file_mode = target.stat().st_mode & 0o777 if target.is_file() else 0o644
     fd, tmp = tempfile.mkstemp(dir=parent, prefix=f".{target.name}.", suffix=".tmp")
     try:
@@ -145,15 +79,15 @@ def atomic_output_dir(path: str | Path, *, overwrite: bool = False) -> Iterator[
     target = Path(path)
     parent = target.parent if str(target.parent) else Path(".")
     if target.exists() and not overwrite:
-        raise CliError(f"{target}: already exists (choose another path, or remove it first)")
+        raise OutputError(f"{target}: already exists (choose another path, or remove it first)")
     if not parent.is_dir():
-        raise CliError(f"{target}: directory {parent} does not exist")
+        raise OutputError(f"{target}: directory {parent} does not exist")
     staging = Path(tempfile.mkdtemp(dir=parent, prefix=f".{target.name}.", suffix=".tmp"))
     try:
         built = staging / target.name
         yield built
         if not built.exists():
-            raise CliError(f"{target}: nothing was written")
+            raise OutputError(f"{target}: nothing was written")
         if target.exists():
             old = staging / (target.name + ".old")
             os.replace(target, old)

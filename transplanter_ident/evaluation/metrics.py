@@ -13,8 +13,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .ekf import O_CF, O_CF_STD, O_CR, O_CR_STD, O_R_MODEL, O_STATUS, O_VY_MODEL, StepStatus
-from .measurements import EpochArrays
+from transplanter_ident.ekf.layout import (
+    O_CF,
+    O_CF_STD,
+    O_CR,
+    O_CR_STD,
+    O_R_MODEL,
+    O_STATUS,
+    O_VY_MODEL,
+    StepStatus,
+)
+from transplanter_ident.epochs.epoch import EpochArrays
 
 CSV_COLUMNS = ("t", "vx", "vy_meas", "r_meas", "delta", "vy_model", "r_model", "cf", "cr", "cf_std", "cr_std")
 

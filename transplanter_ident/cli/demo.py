@@ -1,6 +1,6 @@
 """`make demo`: the IPSO tuner's main job on the sample bags, end to end (paper eqs. 15-22, Table 2).
 
-``python -m transplanter_ident.demo [--out DIR] [--bags DIR] [--seed N]``
+``python -m transplanter_ident.cli.demo [--out DIR] [--bags DIR] [--seed N]``
 
 1. tunes Q and R (eq. 22) with IPSO (eqs. 17-20, the paper's settings F = 20, k_max = 40) on
    ``bags/step20-ccw``, minimising eq. (21), starting from config/estimator.yaml, and writes
@@ -31,21 +31,24 @@ from typing import Any
 
 import numpy as np
 
-from .cli_util import CliError, atomic_write_text, cli_main
-from .ekf import O_CF, O_CR, O_STATUS, StepStatus, run_sequence
-from .measurements import EpochArrays
-from .metrics import format_table2, stiffness_error
-from .model import discrete_matrices
-from .optimize import pso_for_budget
-from .parameters import EstimatorConfig, FilterOptions, NoiseParams
-from .params_file import EstimatorParams, load_params, write_params_yaml
-from .plots import plot_convergence, plot_model_output, plot_stiffness, require_pyplot
-from .tuner import (
+from transplanter_ident.bags.samples import ensure_bag
+from transplanter_ident.cli.plots import plot_convergence, plot_model_output, plot_stiffness, require_pyplot
+from transplanter_ident.cli.tuner import progress_printer
+from transplanter_ident.cli.util import CliError, cli_main
+from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams
+from transplanter_ident.config.params_file import EstimatorParams, load_params, write_params_yaml
+from transplanter_ident.ekf.joint_ekf import run_sequence
+from transplanter_ident.ekf.layout import O_CF, O_CR, O_STATUS, StepStatus
+from transplanter_ident.ekf.model import discrete_matrices
+from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.evaluation.metrics import format_table2, stiffness_error
+from transplanter_ident.files import atomic_write_text
+from transplanter_ident.tuning.pso import pso_for_budget
+from transplanter_ident.tuning.tune import (
     Comparison,
     compare,
     compare_configs,
     header_comment,
-    progress_printer,
     tune,
     tuned_parameters,
 )
@@ -54,8 +57,6 @@ ROOT = Path(__file__).resolve().parents[1]
 TUNE_BAG = "step20-ccw"
 REPLAY_BAGS = ("step20-ccw", "step30-cw")
 OBJECTIVE_BAG = "sine"
-#: seeds of ``make bags`` (bags/README.md), used when a sample bag has to be simulated
-SAMPLE_SEEDS = {"step20-ccw": 1, "step30-cw": 2, "sine": 3, "surface-change": 4}
 #: the paper's filter (eq. 10, linear stiffness, z = [vy, r]) with a trial-and-error Q/R
 PAPER_OPTIONS = FilterOptions(discretization="euler", stiffness_state="linear", measurement="yaw_rate")
 PAPER_NOISE = NoiseParams(process_noise=(1.0e-4, 1.0e-4, 100.0, 100.0), measurement_noise=(4.0e-4, 1.0e-3),
@@ -72,27 +73,9 @@ class BagRun:
     truth: Any  # bag_io.Truth or None
 
 
-def ensure_bag(name: str, bags: Path, fallback: Path) -> Path:
-    """``bags/<name>`` if it exists, else simulate it (``make bags``' seed) into ``fallback/<name>``."""
-    path = bags / name
-    if (path / "metadata.yaml").is_file():
-        return path
-    target = fallback / name
-    if (target / "metadata.yaml").is_file():
-        return target
-    from .bag_io import SimBagOptions, write_sim_bag
-    from .scenarios import build_config
-    from .sim import simulate
-
-    print(f"demo: {path} not found; simulating scenario {name} (seed {SAMPLE_SEEDS[name]}) into {target}")
-    fallback.mkdir(parents=True, exist_ok=True)
-    write_sim_bag(simulate(build_config(name, seed=SAMPLE_SEEDS[name])), target, SimBagOptions(overwrite=True))
-    return target
-
-
 def load_run(name: str, bags: Path, fallback: Path, params: EstimatorParams) -> BagRun:
     """Read one sample bag (epochs and truth)."""
-    from .bag_io import read_bag
+    from transplanter_ident.bags import read_bag
 
     path = ensure_bag(name, bags, fallback)
     data = read_bag(path, params, truth=True)
@@ -186,7 +169,7 @@ def _run(args: argparse.Namespace) -> int:
     plot_convergence(out / "fig4_objective.png", {"IPSO": ipso.result, "PSO": pso.result}, "mae")
 
     _section("2. Replay with config/estimator.yaml + tuned.yaml: Table 2, starting vs tuned Q/R")
-    from .replay import write_csv
+    from transplanter_ident.cli.replay import write_csv
 
     layered = load_params([*base_files, tuned_yaml]).config
     layered_nll = load_params([*base_files, tuned_nll_yaml]).config
@@ -258,7 +241,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``python -m transplanter_ident.demo``."""
+    """Entry point of ``python -m transplanter_ident.cli.demo``."""
     return cli_main(build_parser(), _run, argv)
 
 

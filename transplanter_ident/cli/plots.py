@@ -18,14 +18,15 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from .cli_util import CliError, atomic_output_file, atomic_write_text
-from .ekf import O_CF, O_CF_STD, O_CR, O_CR_STD, O_R_MODEL, O_VY_MODEL
-from .measurements import EpochArrays
-from .metrics import propagated
-from .optimize import OptimizeResult
+from transplanter_ident.cli.util import CliError
+from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD, O_R_MODEL, O_VY_MODEL
+from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.evaluation.metrics import propagated
+from transplanter_ident.files import atomic_output_file, atomic_write_text
+from transplanter_ident.tuning.pso import OptimizeResult
 
 if TYPE_CHECKING:  # pragma: no cover
-    from .tuner import Comparison, TuningOutcome
+    from transplanter_ident.tuning.tune import Comparison, TuningOutcome
 
 OBJECTIVE_LABELS = {"mae": "mean |innovation| (eq. 21)", "nll": "innovation NLL"}
 

@@ -19,138 +19,22 @@ the simulator tests all feed the same :class:`EpochAssembler`.
 
 from __future__ import annotations
 
-import bisect
 import math
 from collections import deque
-from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, fields
+from collections.abc import Iterable
+from dataclasses import dataclass
 
-import numpy as np
-
-FRAMES = ("enu", "ned")
-
-
-@dataclass(frozen=True)
-class Epoch:
-    """One GNSS epoch at the CG, with the inputs held over the interval that ends at ``t``."""
-
-    t: float  # s
-    longitudinal_velocity: float  # vx at t, m/s
-    lateral_velocity: float  # vy at t, m/s
-    heading: float  # psi at t, unwrapped ENU yaw, rad
-    yaw_rate: float  # interval-mean r from heading increments, rad/s
-    steering: float  # interval-mean front steering angle, rad
-    steering_rate: float  # slope of the steering over the interval, rad/s
-    speed: float  # interval-mean vx, m/s
-
-
-class EpochArrays:
-    """A sequence of epochs as columns (replay, tuner)."""
-
-    def __init__(self, epochs: Sequence[Epoch] | None = None) -> None:
-        names = [f.name for f in fields(Epoch)]
-        data = np.array([[getattr(e, n) for n in names] for e in epochs or []], dtype=np.float64)
-        self._data = data.reshape(-1, len(names))
-        for i, name in enumerate(names):
-            setattr(self, name, self._data[:, i])
-
-    def __len__(self) -> int:
-        return self._data.shape[0]
-
-    def __getitem__(self, index: int) -> Epoch:
-        return Epoch(*map(float, self._data[index]))
-
-    def kernel_input(self) -> np.ndarray:
-        """Columns [t, speed, steering, steering_rate, vy, psi, r] for ekf.run_kernel."""
-        return np.ascontiguousarray(
-            np.column_stack([self.t, self.speed, self.steering, self.steering_rate, self.lateral_velocity,
-                             self.heading, self.yaw_rate])
-        )
-
-
-@dataclass(frozen=True)
-class Rejection:
-    """A sample that was not used, and why (DESIGN.md section 6)."""
-
-    topic: str  # "velocity" | "heading" | "steering" | "epoch"
-    stamp: float
-    reason: str
-
-
-def wrap_angle(angle: float) -> float:
-    """Wrap to [-pi, pi)."""
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
-
-
-def stamp_seconds(sec: int, nanosec: int) -> float:
-    """A ROS time (sec, nanosec) in seconds, via integer nanoseconds (node and bag reader alike)."""
-    return (sec * 1_000_000_000 + nanosec) / 1e9
-
-
-def quaternion_yaw(x: float, y: float, z: float, w: float) -> float:
-    """Yaw (rotation about z) of an orientation quaternion; NaN if it is non-finite or of zero norm."""
-    if not all(math.isfinite(c) for c in (x, y, z, w)) or x * x + y * y + z * z + w * w < 1e-12:
-        return math.nan
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-
-
-def heading_to_enu_yaw(heading: float, frame: str) -> float:
-    """ENU yaw from an ENU yaw (``enu``) or a compass heading, clockwise from north (``ned``)."""
-    return heading if frame == "enu" else math.pi / 2.0 - heading
-
-
-def velocity_to_enu(first: float, second: float, frame: str) -> tuple[float, float]:
-    """(east, north) from (east, north) for ``enu`` or (north, east) for ``ned``."""
-    return (first, second) if frame == "enu" else (second, first)
-
-
-def body_velocity(east: float, north: float, yaw: float) -> tuple[float, float]:
-    """Rotate an ENU ground velocity into the body frame (x forward, y left)."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    return c * east + s * north, -s * east + c * north
-
-
-def remove_lever_arm(vx: float, vy: float, yaw_rate: float, antenna_x: float,
-                     antenna_y: float) -> tuple[float, float]:
-    """CG velocity from the antenna's: v_cg = v_ant - r e_z x p_ant."""
-    return vx + yaw_rate * antenna_y, vy - yaw_rate * antenna_x
-
-
-def unwrap_heading(previous_unwrapped: float, wrapped: float) -> float:
-    """Continue an unwrapped heading with a new wrapped sample (the shortest turn)."""
-    return previous_unwrapped + wrap_angle(wrapped - previous_unwrapped)
-
-
-def interval_line(times: Sequence[float], values: Sequence[float], start: float,
-                  end: float) -> tuple[float, float]:
-    """Mean and least-squares slope over [start, end] of the samples joined by straight lines.
-
-    The signal is held constant before the first and after the last sample. ``times``
-    strictly ascending, at least one sample, end > start. Exact (Simpson) integrals per segment.
-    """
-    first = bisect.bisect_right(times, start)
-    last = bisect.bisect_left(times, end)
-    knots = [start, *times[first:last], end]
-    level = [_interpolate(times, values, start), *values[first:last], _interpolate(times, values, end)]
-    centre = 0.5 * (start + end)
-    area = moment = 0.0
-    for i in range(len(knots) - 1):
-        a, b, ya, yb = knots[i], knots[i + 1], level[i], level[i + 1]
-        area += 0.5 * (b - a) * (ya + yb)
-        moment += (b - a) / 6.0 * ((a - centre) * ya + (a + b - 2.0 * centre) * (ya + yb) + (b - centre) * yb)
-    span = end - start
-    return area / span, moment * 12.0 / span**3
-
-
-def _interpolate(times: Sequence[float], values: Sequence[float], t: float) -> float:
-    """Linear interpolation, held constant beyond the first and last sample."""
-    i = bisect.bisect_right(times, t)
-    if i == 0:
-        return values[0]
-    if i == len(times):
-        return values[-1]
-    t0, t1 = times[i - 1], times[i]
-    return values[i - 1] + (values[i] - values[i - 1]) * (t - t0) / (t1 - t0)
+from transplanter_ident.config.params_file import FRAMES
+from transplanter_ident.epochs.epoch import Epoch, Rejection
+from transplanter_ident.epochs.frames import (
+    body_velocity,
+    heading_to_enu_yaw,
+    quaternion_yaw,
+    remove_lever_arm,
+    unwrap_heading,
+    velocity_to_enu,
+)
+from transplanter_ident.epochs.steering_line import interval_line
 
 
 @dataclass(frozen=True)

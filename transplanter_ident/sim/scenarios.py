@@ -17,14 +17,9 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
-from transplanter_ident.parameters import VehicleParams
-from transplanter_ident.sim import (
-    SimConfig,
-    StiffnessSchedule,
-    multisine_steering,
-    sine_steering,
-    step_steering,
-)
+from transplanter_ident.config.parameters import VehicleParams
+from transplanter_ident.sim.signals import StiffnessSchedule, multisine_steering, sine_steering, step_steering
+from transplanter_ident.sim.simulator import SimConfig
 
 ASPHALT = StiffnessSchedule(front=(8000.0,), rear=(10000.0,))  # sim default, paper-like magnitudes
 FIELD = StiffnessSchedule(front=(3500.0,), rear=(4500.0,))  # paddy field: softer tires, lower stiffness

@@ -22,12 +22,20 @@ together at ``gnss_rate``, the steering angle at ``steering_rate`` on its own cl
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from transplanter_ident.parameters import VehicleParams
+from transplanter_ident.config.parameters import VehicleParams
+from transplanter_ident.epochs.frames import wrap_angle
+from transplanter_ident.sim.signals import (
+    Signal,
+    StiffnessSchedule,
+    require_finite,
+    require_positive,
+    sine_steering,
+)
 
 GRAVITY = 9.80665  # m/s^2
 TIRE_MODELS = ("linear", "saturating")
@@ -35,122 +43,11 @@ TIRE_MODELS = ("linear", "saturating")
 # 1 / ||A||_inf keeps the fast lateral modes both stable and accurate.
 _MAX_STEP_STIFFNESS = 1.0
 
-Signal = Callable[[np.ndarray], np.ndarray]
-
 
 # --------------------------------------------------------------------------- steering inputs
 
 
-@dataclass(frozen=True)
-class SineSteering:
-    """delta(t) = amplitude * sin(2 pi t / period), rad."""
-
-    amplitude: float
-    period: float
-
-    def __call__(self, t: np.ndarray) -> np.ndarray:
-        return self.amplitude * np.sin((2.0 * math.pi / self.period) * np.asarray(t, dtype=float))
-
-
-@dataclass(frozen=True)
-class StepSteering:
-    """0 before ``start``, a linear ramp over ``ramp`` seconds, then ``amplitude`` (rad)."""
-
-    amplitude: float
-    start: float = 1.0
-    ramp: float = 0.5
-
-    def __call__(self, t: np.ndarray) -> np.ndarray:
-        t = np.asarray(t, dtype=float)
-        if self.ramp <= 0.0:
-            return np.where(t >= self.start, self.amplitude, 0.0)
-        return self.amplitude * np.clip((t - self.start) / self.ramp, 0.0, 1.0)
-
-
-@dataclass(frozen=True)
-class MultisineSteering:
-    """Sum of sines with the given periods and phases; each has amplitude / n, so |delta| <= amplitude."""
-
-    amplitude: float
-    periods: tuple[float, ...]
-    phases: tuple[float, ...]
-
-    def __call__(self, t: np.ndarray) -> np.ndarray:
-        t = np.asarray(t, dtype=float)
-        out = np.zeros_like(t)
-        for period, phase in zip(self.periods, self.phases, strict=True):
-            out = out + np.sin((2.0 * math.pi / period) * t + phase)
-        return (self.amplitude / len(self.periods)) * out
-
-
-def sine_steering(amplitude: float, period: float) -> Signal:
-    """A sine steer of the given amplitude (rad) and period (s)."""
-    _require_positive("period", period)
-    _require_finite("amplitude", amplitude)
-    return SineSteering(float(amplitude), float(period))
-
-
-def step_steering(amplitude: float, start: float = 1.0, ramp: float = 0.5) -> Signal:
-    """The paper's step test (20 or 30 degrees), ramped over ``ramp`` s (0 = ideal step)."""
-    _require_finite("amplitude", amplitude)
-    _require_finite("start", start)
-    if not (math.isfinite(ramp) and ramp >= 0.0):
-        raise ValueError(f"ramp must be >= 0, got {ramp!r}")
-    return StepSteering(float(amplitude), float(start), float(ramp))
-
-
-def multisine_steering(amplitude: float, periods: Sequence[float], seed: int = 0) -> Signal:
-    """A multi-sine steer with random phases drawn from ``seed``; |delta| never exceeds ``amplitude``."""
-    _require_finite("amplitude", amplitude)
-    if len(periods) == 0:
-        raise ValueError("multisine_steering needs at least one period")
-    for period in periods:
-        _require_positive("period", period)
-    phases = np.random.default_rng(seed).uniform(0.0, 2.0 * math.pi, size=len(periods))
-    return MultisineSteering(float(amplitude), tuple(float(p) for p in periods), tuple(phases.tolist()))
-
-
 # --------------------------------------------------------------------------- configuration
-
-
-@dataclass(frozen=True)
-class StiffnessSchedule:
-    """Piecewise-constant true cornering stiffness, N/rad per tire (the model's 2*C per axle).
-
-    Segment i holds ``front[i]``, ``rear[i]`` from ``times[i]``. With ``transition > 0`` the
-    change at ``times[i]`` is a linear blend over ``[times[i], times[i] + transition]``
-    (overlapping blends add up; the value after the last blend is always the segment value).
-    """
-
-    times: tuple[float, ...] = (0.0,)
-    front: tuple[float, ...] = (8000.0,)
-    rear: tuple[float, ...] = (10000.0,)
-    transition: float = 0.0
-
-    def __post_init__(self) -> None:
-        if not (len(self.times) == len(self.front) == len(self.rear) and len(self.times) > 0):
-            raise ValueError(
-                "stiffness schedule: times, front and rear must be non-empty and of equal length"
-            )
-        if self.times[0] != 0.0:
-            raise ValueError(f"stiffness schedule must start at time 0.0, got {self.times[0]!r}")
-        if any(not math.isfinite(b) or b <= a for a, b in zip(self.times[:-1], self.times[1:], strict=True)):
-            raise ValueError(f"stiffness schedule times must be strictly ascending, got {self.times}")
-        for value in (*self.front, *self.rear):
-            _require_positive("stiffness", value)
-        if not (math.isfinite(self.transition) and self.transition >= 0.0):
-            raise ValueError(f"stiffness transition must be >= 0, got {self.transition!r}")
-
-    def at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(Cf, Cr) at times ``t`` (any shape), N/rad per tire."""
-        t = np.asarray(t, dtype=float)
-        return self._blend(t, self.front), self._blend(t, self.rear)
-
-    def _blend(self, t: np.ndarray, values: tuple[float, ...]) -> np.ndarray:
-        out = np.full(t.shape, values[0], dtype=float)
-        for start, before, after in zip(self.times[1:], values[:-1], values[1:], strict=True):
-            out = out + (after - before) * _ramp(t, start, self.transition)
-        return out
 
 
 @dataclass(frozen=True)
@@ -193,9 +90,9 @@ class SimConfig:
         if self.tire not in TIRE_MODELS:
             raise ValueError(f"tire must be one of {', '.join(TIRE_MODELS)}, got {self.tire!r}")
         for name in ("duration", "speed", "friction", "gnss_rate", "steering_rate", "integration_step"):
-            _require_positive(name, getattr(self, name))
-        _require_finite("steering_time_offset", self.steering_time_offset)
-        _require_finite("initial_heading", self.initial_heading)
+            require_positive(name, getattr(self, name))
+        require_finite("steering_time_offset", self.steering_time_offset)
+        require_finite("initial_heading", self.initial_heading)
 
 
 @dataclass(frozen=True)
@@ -275,12 +172,6 @@ def antenna_velocity_enu(
     vya = vy + r * vehicle.antenna_x
     cos_psi, sin_psi = np.cos(psi), np.sin(psi)
     return np.column_stack((vxa * cos_psi - vya * sin_psi, vxa * sin_psi + vya * cos_psi))
-
-
-def wrap_angle(angle: np.ndarray) -> np.ndarray:
-    """Wrap to (-pi, pi]."""
-    wrapped = math.pi - np.mod(math.pi - np.asarray(angle, dtype=float), 2.0 * math.pi)
-    return np.where(wrapped <= -math.pi, wrapped + 2.0 * math.pi, wrapped)
 
 
 def _sample_times(offset: float, rate: float, duration: float) -> np.ndarray:
@@ -409,17 +300,3 @@ def axle_force_limits(vehicle: VehicleParams, friction: float) -> tuple[float, f
     )
 
 
-def _ramp(t: np.ndarray, start: float, width: float) -> np.ndarray:
-    if width <= 0.0:
-        return (t >= start).astype(float)
-    return np.clip((t - start) / width, 0.0, 1.0)
-
-
-def _require_positive(name: str, value: float) -> None:
-    if isinstance(value, bool) or not (math.isfinite(value) and value > 0.0):
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-
-
-def _require_finite(name: str, value: float) -> None:
-    if isinstance(value, bool) or not math.isfinite(value):
-        raise ValueError(f"{name} must be finite, got {value!r}")

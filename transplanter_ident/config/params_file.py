@@ -31,8 +31,8 @@ from typing import Any
 
 import yaml
 
-from .cli_util import atomic_write_text
-from .parameters import EstimatorConfig, FilterOptions, NoiseParams, VehicleParams
+from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams, VehicleParams
+from transplanter_ident.files import atomic_write_text
 
 FRAMES = ("enu", "ned")
 WILDCARD = "/**"

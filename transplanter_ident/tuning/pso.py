@@ -56,59 +56,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from transplanter_ident.tuning.box import Box
+
 BatchObjective = Callable[[np.ndarray], np.ndarray]
 ALGORITHMS = ("ipso", "pso")
-
-
-@dataclass(frozen=True)
-class Box:
-    """The search box: lower[d] <= x[d] <= upper[d]."""
-
-    lower: tuple[float, ...]
-    upper: tuple[float, ...]
-    names: tuple[str, ...] = ()
-
-    def __post_init__(self) -> None:
-        if len(self.lower) != len(self.upper) or not self.lower:
-            raise ValueError("box: lower and upper must be non-empty and of equal length")
-        if self.names and len(self.names) != len(self.lower):
-            raise ValueError("box: one name per dimension")
-        for low, high in zip(self.lower, self.upper, strict=True):
-            if not (math.isfinite(low) and math.isfinite(high) and low < high):
-                raise ValueError(f"box: need finite lower < upper, got [{low}, {high}]")
-
-    @property
-    def dimension(self) -> int:
-        """D, the number of dimensions."""
-        return len(self.lower)
-
-    @property
-    def low(self) -> np.ndarray:
-        """Lower bounds as an array."""
-        return np.asarray(self.lower, dtype=np.float64)
-
-    @property
-    def high(self) -> np.ndarray:
-        """Upper bounds as an array."""
-        return np.asarray(self.upper, dtype=np.float64)
-
-    @property
-    def width(self) -> np.ndarray:
-        """Width per dimension, upper - lower."""
-        return self.high - self.low
-
-    def clip(self, x: np.ndarray) -> np.ndarray:
-        """The points ``x`` clipped into the box."""
-        return np.clip(x, self.low, self.high)
-
-    def uniform(self, rng: np.random.Generator, count: int) -> np.ndarray:
-        """``count`` points uniformly distributed in the box."""
-        return self.low + rng.random((count, self.dimension)) * self.width
-
-    @classmethod
-    def cube(cls, dimension: int, low: float, high: float) -> Box:
-        """[low, high]^dimension."""
-        return cls((float(low),) * dimension, (float(high),) * dimension)
 
 
 @dataclass(frozen=True)
@@ -406,40 +357,6 @@ def pso_for_budget(evaluations: int, base: PsoSettings | None = None) -> PsoSett
     return PsoSettings(**fields)
 
 
-def random_search(objective: BatchObjective, box: Box, evaluations: int,
-                  seed: int | np.random.Generator | None = None) -> OptimizeResult:
-    """Baseline: the best of ``evaluations`` uniform samples of the box."""
-    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-    x = box.uniform(rng, evaluations)
-    f = np.asarray(objective(x), dtype=np.float64)
-    best = int(np.argmin(f))
-    record = IterationRecord(0, float(f[best]), float(np.median(f)), evaluations, 0)
-    return OptimizeResult("random", x[best].copy(), float(f[best]), evaluations, (record,))
-
-
 # ----------------------------------------------------------------- test functions (benchmarks)
 
 
-def rastrigin(x: np.ndarray) -> np.ndarray:
-    """Rastrigin, batch form: 10 D + sum(x^2 - 10 cos(2 pi x)); minimum 0 at x = 0."""
-    x = np.atleast_2d(x)
-    return 10.0 * x.shape[1] + np.sum(x * x - 10.0 * np.cos(2.0 * math.pi * x), axis=1)
-
-
-def ackley(x: np.ndarray) -> np.ndarray:
-    """Ackley, batch form; minimum 0 at x = 0."""
-    x = np.atleast_2d(x)
-    d = x.shape[1]
-    term1 = -20.0 * np.exp(-0.2 * np.sqrt(np.sum(x * x, axis=1) / d))
-    term2 = -np.exp(np.sum(np.cos(2.0 * math.pi * x), axis=1) / d)
-    return term1 + term2 + 20.0 + math.e
-
-
-def shifted(function: BatchObjective, shift: np.ndarray) -> BatchObjective:
-    """function(x - shift): moves the optimum away from the box centre (eq. 17 pulls towards it)."""
-    offset = np.asarray(shift, dtype=np.float64)
-
-    def moved(x: np.ndarray) -> np.ndarray:
-        return function(np.atleast_2d(x) - offset)
-
-    return moved

@@ -1,0 +1,319 @@
+"""Writing rosbag2 bags (MCAP) with the ROS 2 Jazzy typestore, atomically.
+
+:class:`BagWriter` builds the bag under a temporary name and renames it when complete.
+:func:`write_sim_bag` writes a simulated run (input topics plus ``/sim/*`` ground truth);
+:func:`write_output_bag` the node's output topics for a replayed bag.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+
+from transplanter_ident.bags.errors import BagError
+from transplanter_ident.bags.messages import (
+    FLOAT64,
+    IMU,
+    JOINT_STATE,
+    NS_PER_S,
+    OUTPUT_FRAME_ID,
+    OUTPUT_MEASUREMENT,
+    OUTPUT_MODEL,
+    OUTPUT_NAMESPACE,
+    OUTPUT_STIFFNESS,
+    OUTPUT_STIFFNESS_STD,
+    QUATERNION_STAMPED,
+    TRUTH_STIFFNESS_TOPIC,
+    TRUTH_VELOCITY_TOPIC,
+    TWIST_COV_STAMPED,
+    TWIST_STAMPED,
+    TYPESTORE,
+    VECTOR3_STAMPED,
+    to_ns,
+    yaw_quaternion,
+)
+from transplanter_ident.bags.reader import _reason
+from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.files import atomic_output_dir
+
+
+def _types() -> dict[str, Any]:
+    return TYPESTORE.types
+
+
+def _header(stamp_ns: int, frame_id: str) -> Any:
+    types = _types()
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
+    return types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec),
+                                        frame_id=frame_id)
+
+
+def _vector3(xyz: Sequence[float]) -> Any:
+    return _types()["geometry_msgs/msg/Vector3"](x=float(xyz[0]), y=float(xyz[1]), z=float(xyz[2]))
+
+
+def _quaternion(q: Sequence[float]) -> Any:
+    return _types()["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
+
+
+class BagWriter:
+    """Write an MCAP rosbag2 directory (ROS 2 Jazzy types), atomically.
+
+    Use as a context manager; the bag appears at ``path`` only when the block ends without
+    an exception. Each ``write_*`` helper takes the header stamp in integer nanoseconds and
+    uses it as the log time too (``log_ns`` overrides). Connections are added on first use.
+    """
+
+    def __init__(self, path: str | Path, *, compress: bool = False, overwrite: bool = False) -> None:
+        self.path = Path(path)
+        self.compress = compress
+        self.overwrite = overwrite
+        self._writer: Writer | None = None
+        self._connections: dict[tuple[str, str], Any] = {}
+        self._dir_context: Any = None
+        self.count = 0
+
+    def __enter__(self) -> BagWriter:
+        try:
+            self._dir_context = atomic_output_dir(self.path, overwrite=self.overwrite)
+            staging = self._dir_context.__enter__()
+            self._writer = Writer(staging, version=9, storage_plugin=StoragePlugin.MCAP)
+            if self.compress:
+                self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+            self._writer.open()
+        except Exception as exc:
+            if self._dir_context is not None:
+                self._dir_context.__exit__(type(exc), exc, exc.__traceback__)
+            raise BagError(f"{self.path}: cannot write bag: {_reason(exc)}") from exc
+        return self
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> bool:
+        writer, self._writer = self._writer, None
+        try:
+            if writer is not None:
+                if exc_type is None:
+                    writer.close()
+                else:
+                    try:
+                        writer.close()
+                    except Exception:  # noqa: BLE001, S110 - the original error matters, the dir is discarded
+                        pass
+        except Exception as close_exc:
+            self._dir_context.__exit__(type(close_exc), close_exc, close_exc.__traceback__)
+            raise BagError(f"{self.path}: cannot write bag: {_reason(close_exc)}") from close_exc
+        try:
+            self._dir_context.__exit__(exc_type, exc, tb)
+        except Exception as move_exc:
+            if exc_type is None:
+                raise BagError(f"{self.path}: cannot write bag: {_reason(move_exc)}") from move_exc
+        return False
+
+    def write(self, topic: str, msgtype: str, msg: Any, log_ns: int) -> None:
+        """Serialize ``msg`` (a typestore message of ``msgtype``) and write it at ``log_ns``."""
+        if self._writer is None:
+            raise BagError(f"{self.path}: bag is not open for writing")
+        key = (topic, msgtype)
+        conn = self._connections.get(key)
+        if conn is None:
+            conn = self._writer.add_connection(topic, msgtype, typestore=TYPESTORE)
+            self._connections[key] = conn
+        self._writer.write(conn, int(log_ns), TYPESTORE.serialize_cdr(msg, msgtype))
+        self.count += 1
+
+    def write_twist(self, topic: str, stamp_ns: int, linear: Sequence[float], angular: Sequence[float] = (0, 0, 0),
+                    *, frame_id: str = "", log_ns: int | None = None) -> None:
+        """geometry_msgs/TwistStamped."""
+        types = _types()
+        twist = types["geometry_msgs/msg/Twist"](linear=_vector3(linear), angular=_vector3(angular))
+        msg = types[TWIST_STAMPED](header=_header(stamp_ns, frame_id), twist=twist)
+        self.write(topic, TWIST_STAMPED, msg, stamp_ns if log_ns is None else log_ns)
+
+    def write_twist_with_covariance(self, topic: str, stamp_ns: int, linear: Sequence[float],
+                                    angular: Sequence[float] = (0, 0, 0), covariance: Sequence[float] | None = None,
+                                    *, frame_id: str = "", log_ns: int | None = None) -> None:
+        """geometry_msgs/TwistWithCovarianceStamped (covariance: 36 values, default zeros)."""
+        types = _types()
+        twist = types["geometry_msgs/msg/Twist"](linear=_vector3(linear), angular=_vector3(angular))
+        cov = np.zeros(36) if covariance is None else np.asarray(covariance, dtype=np.float64).reshape(36)
+        msg = types[TWIST_COV_STAMPED](header=_header(stamp_ns, frame_id),
+                                       twist=types["geometry_msgs/msg/TwistWithCovariance"](twist=twist,
+                                                                                           covariance=cov))
+        self.write(topic, TWIST_COV_STAMPED, msg, stamp_ns if log_ns is None else log_ns)
+
+    def write_quaternion(self, topic: str, stamp_ns: int, quaternion: Sequence[float], *, frame_id: str = "",
+                         log_ns: int | None = None) -> None:
+        """geometry_msgs/QuaternionStamped; ``quaternion`` is (x, y, z, w)."""
+        msg = _types()[QUATERNION_STAMPED](header=_header(stamp_ns, frame_id), quaternion=_quaternion(quaternion))
+        self.write(topic, QUATERNION_STAMPED, msg, stamp_ns if log_ns is None else log_ns)
+
+    def write_imu(self, topic: str, stamp_ns: int, orientation: Sequence[float], *, frame_id: str = "",
+                  orientation_variance: float = 0.0, log_ns: int | None = None) -> None:
+        """sensor_msgs/Imu carrying only an orientation (angular velocity and acceleration marked unknown)."""
+        unknown = np.zeros(9)
+        unknown[0] = -1.0  # REP 145: covariance[0] = -1 means "no estimate of this quantity"
+        orientation_cov = np.zeros(9)
+        orientation_cov[[0, 4, 8]] = orientation_variance
+        msg = _types()[IMU](header=_header(stamp_ns, frame_id), orientation=_quaternion(orientation),
+                            orientation_covariance=orientation_cov, angular_velocity=_vector3((0, 0, 0)),
+                            angular_velocity_covariance=unknown, linear_acceleration=_vector3((0, 0, 0)),
+                            linear_acceleration_covariance=unknown.copy())
+        self.write(topic, IMU, msg, stamp_ns if log_ns is None else log_ns)
+
+    def write_joint_state(self, topic: str, stamp_ns: int, names: Sequence[str], positions: Sequence[float], *,
+                          frame_id: str = "", log_ns: int | None = None) -> None:
+        """sensor_msgs/JointState with positions only."""
+        empty = np.zeros(0)
+        msg = _types()[JOINT_STATE](header=_header(stamp_ns, frame_id), name=list(names),
+                                    position=np.asarray(positions, dtype=np.float64), velocity=empty,
+                                    effort=empty)
+        self.write(topic, JOINT_STATE, msg, stamp_ns if log_ns is None else log_ns)
+
+    def write_float64(self, topic: str, log_ns: int, value: float) -> None:
+        """std_msgs/Float64 (no header: the log time is its only stamp)."""
+        self.write(topic, FLOAT64, _types()[FLOAT64](data=float(value)), log_ns)
+
+    def write_vector3(self, topic: str, stamp_ns: int, xyz: Sequence[float], *, frame_id: str = "",
+                      log_ns: int | None = None) -> None:
+        """geometry_msgs/Vector3Stamped."""
+        msg = _types()[VECTOR3_STAMPED](header=_header(stamp_ns, frame_id), vector=_vector3(xyz))
+        self.write(topic, VECTOR3_STAMPED, msg, stamp_ns if log_ns is None else log_ns)
+
+
+@dataclass(frozen=True)
+class SimBagOptions:
+    """How :func:`write_sim_bag` encodes a simulated run."""
+
+    velocity_topic: str = "/gnss/vel"
+    heading_topic: str = "/gnss/heading"
+    steering_topic: str = "/steering_angle"
+    velocity_type: str = "twist"  # twist | twist-cov
+    heading_type: str = "quaternion"  # quaternion | imu
+    steering_type: str = "joint-state"  # joint-state | float64
+    velocity_frame: str = "enu"  # enu | ned
+    heading_frame: str = "enu"  # enu | ned (compass heading, clockwise from north)
+    joint_name: str = "front_steering"
+    start_time: float = 1_700_000_000.0  # s, bag time of simulation time 0
+    truth: bool = True
+    compress: bool = False
+    overwrite: bool = False
+    gnss_frame_id: str = "gnss_link"
+    velocity_std: float = 0.02  # m/s, reported in TwistWithCovarianceStamped
+    heading_std: float = math.radians(0.2)  # rad, reported in Imu
+
+    def __post_init__(self) -> None:
+        for name, choices in (("velocity_type", ("twist", "twist-cov")), ("heading_type", ("quaternion", "imu")),
+                              ("steering_type", ("joint-state", "float64")), ("velocity_frame", ("enu", "ned")),
+                              ("heading_frame", ("enu", "ned"))):
+            if getattr(self, name) not in choices:
+                raise ValueError(f"{name} must be one of {', '.join(choices)}, got {getattr(self, name)!r}")
+
+
+_STEER, _VEL, _HEAD, _TRUTH = 0, 1, 2, 3
+
+
+def write_sim_bag(result: Any, path: str | Path, options: SimBagOptions | None = None) -> int:
+    """Write a ``sim.SimResult`` as an MCAP rosbag2 directory; returns the number of messages.
+
+    At equal times the steering sample is written before the GNSS velocity and heading (the
+    steering at t_k is available when epoch t_k is formed), then the ground truth.
+    """
+    opt = options or SimBagOptions()
+    start_ns = to_ns(opt.start_time)
+    gnss_ns = start_ns + np.rint(np.asarray(result.gnss_time) * 1e9).astype(np.int64)
+    steer_ns = start_ns + np.rint(np.asarray(result.steering_time) * 1e9).astype(np.int64)
+    n_gnss, n_steer = len(gnss_ns), len(steer_ns)
+    kinds = [np.full(n_steer, _STEER), np.full(n_gnss, _VEL), np.full(n_gnss, _HEAD)]
+    times = [steer_ns, gnss_ns, gnss_ns]
+    index = [np.arange(n_steer), np.arange(n_gnss), np.arange(n_gnss)]
+    if opt.truth:
+        kinds.append(np.full(n_gnss, _TRUTH))
+        times.append(gnss_ns)
+        index.append(np.arange(n_gnss))
+    kind = np.concatenate(kinds)
+    when = np.concatenate(times)
+    idx = np.concatenate(index)
+    order = np.lexsort((kind, when))
+
+    vel = np.asarray(result.velocity_enu, dtype=np.float64)
+    if opt.velocity_frame == "ned":
+        vel = vel[:, ::-1]
+    heading = np.asarray(result.heading, dtype=np.float64)
+    if opt.heading_frame == "ned":  # compass heading, clockwise from north, in [0, 2 pi)
+        heading = np.mod(math.pi / 2.0 - heading, 2.0 * math.pi)
+    vel_cov = np.zeros(36)
+    vel_cov[[0, 7, 14]] = opt.velocity_std**2
+    vel_list, heading_list = vel.tolist(), heading.tolist()
+    steer_list = np.asarray(result.steering, dtype=np.float64).tolist()
+    gnss_list, steer_ns_list = gnss_ns.tolist(), steer_ns.tolist()
+    truth = (np.column_stack([result.truth_cf, result.truth_cr]).tolist(),
+             np.column_stack([result.truth_vx, result.truth_vy, result.truth_yaw_rate]).tolist())
+
+    with BagWriter(path, compress=opt.compress, overwrite=opt.overwrite) as bag:
+        for k, i in zip(kind[order].tolist(), idx[order].tolist(), strict=True):
+            if k == _STEER:
+                ns = steer_ns_list[i]
+                if opt.steering_type == "float64":
+                    bag.write_float64(opt.steering_topic, ns, steer_list[i])
+                else:
+                    bag.write_joint_state(opt.steering_topic, ns, [opt.joint_name], [steer_list[i]])
+            elif k == _VEL:
+                ns = gnss_list[i]
+                linear = (vel_list[i][0], vel_list[i][1], 0.0)
+                if opt.velocity_type == "twist-cov":
+                    bag.write_twist_with_covariance(opt.velocity_topic, ns, linear, covariance=vel_cov,
+                                                    frame_id=opt.gnss_frame_id)
+                else:
+                    bag.write_twist(opt.velocity_topic, ns, linear, frame_id=opt.gnss_frame_id)
+            elif k == _HEAD:
+                ns = gnss_list[i]
+                q = yaw_quaternion(heading_list[i])
+                if opt.heading_type == "imu":
+                    bag.write_imu(opt.heading_topic, ns, q, frame_id=opt.gnss_frame_id,
+                                  orientation_variance=opt.heading_std**2)
+                else:
+                    bag.write_quaternion(opt.heading_topic, ns, q, frame_id=opt.gnss_frame_id)
+            else:
+                ns = gnss_list[i]
+                cf, cr = truth[0][i]
+                vx, vy, r = truth[1][i]
+                bag.write_vector3(TRUTH_STIFFNESS_TOPIC, ns, (cf, cr, 0.0), frame_id=OUTPUT_FRAME_ID)
+                bag.write_twist(TRUTH_VELOCITY_TOPIC, ns, (vx, vy, 0.0), (0.0, 0.0, r), frame_id=OUTPUT_FRAME_ID)
+        return bag.count
+
+
+def write_output_bag(path: str | Path, epochs: EpochArrays, outputs: np.ndarray, *,
+                     namespace: str = OUTPUT_NAMESPACE, overwrite: bool = False) -> int:
+    """Write the node's output topics for every epoch, stamped (and logged) at the epoch time.
+
+    Epochs whose outputs are not all finite are skipped (the node never publishes NaN).
+    Returns the number of epochs written.
+    """
+    from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD, O_R_MODEL, O_VY_MODEL
+
+    ns_prefix = namespace.rstrip("/")
+    topics = {name: f"{ns_prefix}/{name}" for name in (OUTPUT_STIFFNESS, OUTPUT_STIFFNESS_STD, OUTPUT_MODEL,
+                                                       OUTPUT_MEASUREMENT)}
+    cols = [O_CF, O_CR, O_CF_STD, O_CR_STD, O_VY_MODEL, O_R_MODEL]
+    written = 0
+    with BagWriter(path, overwrite=overwrite) as bag:
+        t_ns = [to_ns(t) for t in epochs.t.tolist()]
+        meas = np.column_stack([epochs.longitudinal_velocity, epochs.lateral_velocity, epochs.yaw_rate]).tolist()
+        out = outputs[:, cols].tolist()
+        for ns, (vx, vy, r), (cf, cr, cf_std, cr_std, vy_model, r_model) in zip(t_ns, meas, out, strict=True):
+            if not all(math.isfinite(v) for v in (vx, vy, r, cf, cr, cf_std, cr_std, vy_model, r_model)):
+                continue
+            bag.write_vector3(topics[OUTPUT_STIFFNESS], ns, (cf, cr, 0.0), frame_id=OUTPUT_FRAME_ID)
+            bag.write_vector3(topics[OUTPUT_STIFFNESS_STD], ns, (cf_std, cr_std, 0.0), frame_id=OUTPUT_FRAME_ID)
+            bag.write_twist(topics[OUTPUT_MODEL], ns, (0.0, vy_model, 0.0), (0.0, 0.0, r_model),
+                            frame_id=OUTPUT_FRAME_ID)
+            bag.write_twist(topics[OUTPUT_MEASUREMENT], ns, (vx, vy, 0.0), (0.0, 0.0, r),
+                            frame_id=OUTPUT_FRAME_ID)
+            written += 1
+    return written

@@ -1,0 +1,89 @@
+"""Index layout of the compiled filter (paper eqs. 9-14): every array slot named once.
+
+The kernels of :mod:`.model` and :mod:`.kernels` work on flat float arrays; this module names
+their slots so that no kernel writes a bare number:
+
+* state x (n,): [vy, r, psi, theta_f, theta_r] in ``heading`` mode (z = [vy, psi]) or
+  [vy, r, theta_f, theta_r] in ``yaw_rate`` mode (the paper's eq. 11, z = [vy, r]);
+* settings (N_SETTINGS,): the filter options as numbers (``S_*``);
+* outputs (N_OUTPUTS,): one row per epoch (``O_*``);
+* memo (N_MEMO,): what the step remembers between epochs (``M_*``);
+* epoch columns (N_EPOCH_COLUMNS,): the kernel input of one epoch (``E_*``);
+* work buffer (WORK_SLOTS, WORK_SIZE, WORK_SIZE): scratch matrices (``W_*``) and vectors
+  (rows ``V_*`` of slot ``W_VEC``);
+* :class:`StepStatus`: what the step did with an epoch (an IntEnum: a constant to numba).
+"""
+
+from __future__ import annotations
+
+import enum
+
+# state: the motion states first, the two stiffness states last
+X_VY, X_R, X_PSI = 0, 1, 2
+HEADING_STATES, YAW_RATE_STATES = 5, 4
+N_MOTION_HEADING, N_MOTION_YAW_RATE = 3, 2
+
+# measurement z = [vy, psi] (heading) or [vy, r] (yaw_rate): diag R and innovation order
+Z_VY, Z_SECOND = 0, 1
+
+# settings vector
+S_METHOD, S_LOG, S_HEADING, S_MIN_SPEED, S_LOW, S_HIGH = 0, 1, 2, 3, 4, 5
+S_GATE, S_MAX_GATED, S_MAX_INTERVAL, S_P0_VY, S_P0_R, S_P0_PSI = 6, 7, 8, 9, 10, 11
+N_SETTINGS = 12
+
+# output row (one per epoch)
+O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6
+O_VY_MODEL, O_R_MODEL, O_E0, O_E1, O_S00, O_S01, O_S11, O_NIS = 7, 8, 9, 10, 11, 12, 13, 14
+N_OUTPUTS = 15
+
+# memo vector
+M_T_PREV, M_INITIALISED, M_GATED = 0, 1, 2
+N_MEMO = 3
+
+# the open-loop model's state [vy, r, psi]
+N_MODEL = 3
+
+# epoch columns (epochs.EpochArrays.kernel_input)
+E_T, E_SPEED, E_STEERING, E_STEERING_RATE, E_VY, E_PSI, E_YAW_RATE = 0, 1, 2, 3, 4, 5, 6
+N_EPOCH_COLUMNS = 7
+
+# vehicle constants (model.vehicle_array)
+VEH_MASS, VEH_LF, VEH_LR, VEH_IZ = 0, 1, 2, 3
+
+# discretisation codes (settings[S_METHOD])
+EXACT, EULER = 0, 1
+
+# tuning objectives
+MAE, NLL = 0, 1
+DIVERGENCE_PENALTY = 1.0e6
+
+# work-buffer slots, ws[slot, i, j]: the discretisation (model.py) ...
+W_E, W_DE_F, W_DE_R, W_M, W_DM_F, W_DM_R = 0, 1, 2, 3, 4, 5
+W_T, W_DT_F, W_DT_R, W_NT, W_NDT_F, W_NDT_R = 6, 7, 8, 9, 10, 11
+# ... and the filter step (kernels.py); W_GAIN rows: K[:, 0], K[:, 1], (HP)[0], (HP)[1]
+W_F, W_TMP, W_GAIN, W_BACKUP_P, W_VEC = 12, 13, 14, 15, 16
+WORK_SLOTS = 17
+WORK_SIZE = 5
+# rows of ws[W_VEC]
+V_BACKUP_X, V_BACKUP_MODEL, V_NEW_X, V_NEW_MODEL = 0, 1, 2, 3
+# rows of ws[W_GAIN]
+G_K0, G_K1, G_HP0, G_HP1 = 0, 1, 2, 3
+
+
+class StepStatus(enum.IntEnum):
+    """What the filter did with an epoch."""
+
+    UPDATED = 0
+    GATED = 1  # predicted; the measurement failed the innovation gate
+    LOW_SPEED = 2  # |vx| below min_speed: motion states follow the measurement, stiffness held
+    REVERSING = 3  # vx negative: as LOW_SPEED
+    INITIALISED = 4  # first epoch: motion states taken from the measurement
+    GAP = 5  # interval longer than max_interval: motion states re-initialised
+    REJECTED_INVALID = 6  # NaN or Inf in the epoch: nothing changed
+    REJECTED_STAMP = 7  # stamp not after the previous epoch: nothing changed
+    DIVERGED = 8  # the step produced a non-finite state: rolled back
+
+    @property
+    def stiffness_updated(self) -> bool:
+        """Whether the stiffness estimate saw this epoch's measurement."""
+        return self is StepStatus.UPDATED

@@ -1,0 +1,55 @@
+"""One GNSS epoch at the CG (the filter's input, z of paper eq. 7), a sequence of them, a rejection."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Epoch:
+    """One GNSS epoch at the CG, with the inputs held over the interval that ends at ``t``."""
+
+    t: float  # s
+    longitudinal_velocity: float  # vx at t, m/s
+    lateral_velocity: float  # vy at t, m/s
+    heading: float  # psi at t, unwrapped ENU yaw, rad
+    yaw_rate: float  # interval-mean r from heading increments, rad/s
+    steering: float  # interval-mean front steering angle, rad
+    steering_rate: float  # slope of the steering over the interval, rad/s
+    speed: float  # interval-mean vx, m/s
+
+
+class EpochArrays:
+    """A sequence of epochs as columns (replay, tuner)."""
+
+    def __init__(self, epochs: Sequence[Epoch] | None = None) -> None:
+        names = [f.name for f in fields(Epoch)]
+        data = np.array([[getattr(e, n) for n in names] for e in epochs or []], dtype=np.float64)
+        self._data = data.reshape(-1, len(names))
+        for i, name in enumerate(names):
+            setattr(self, name, self._data[:, i])
+
+    def __len__(self) -> int:
+        return self._data.shape[0]
+
+    def __getitem__(self, index: int) -> Epoch:
+        return Epoch(*map(float, self._data[index]))
+
+    def kernel_input(self) -> np.ndarray:
+        """Columns [t, speed, steering, steering_rate, vy, psi, r] for ekf.run_kernel."""
+        return np.ascontiguousarray(
+            np.column_stack([self.t, self.speed, self.steering, self.steering_rate, self.lateral_velocity,
+                             self.heading, self.yaw_rate])
+        )
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """A sample that was not used, and why (DESIGN.md section 6)."""
+
+    topic: str  # "velocity" | "heading" | "steering" | "epoch"
+    stamp: float
+    reason: str

@@ -1,0 +1,43 @@
+"""The steering input over one GNSS interval: its least-squares line (mean and slope).
+
+The steering stream is faster than GNSS; joined by straight lines between its samples, its
+mean and least-squares slope over [t_{k-1}, t_k] are what the exact model integrates as a ramp
+(DESIGN.md section 1, input timing).
+"""
+
+from __future__ import annotations
+
+import bisect
+from collections.abc import Sequence
+
+
+def interval_line(times: Sequence[float], values: Sequence[float], start: float,
+                  end: float) -> tuple[float, float]:
+    """Mean and least-squares slope over [start, end] of the samples joined by straight lines.
+
+    The signal is held constant before the first and after the last sample. ``times``
+    strictly ascending, at least one sample, end > start. Exact (Simpson) integrals per segment.
+    """
+    first = bisect.bisect_right(times, start)
+    last = bisect.bisect_left(times, end)
+    knots = [start, *times[first:last], end]
+    level = [_interpolate(times, values, start), *values[first:last], _interpolate(times, values, end)]
+    centre = 0.5 * (start + end)
+    area = moment = 0.0
+    for i in range(len(knots) - 1):
+        a, b, ya, yb = knots[i], knots[i + 1], level[i], level[i + 1]
+        area += 0.5 * (b - a) * (ya + yb)
+        moment += (b - a) / 6.0 * ((a - centre) * ya + (a + b - 2.0 * centre) * (ya + yb) + (b - centre) * yb)
+    span = end - start
+    return area / span, moment * 12.0 / span**3
+
+
+def _interpolate(times: Sequence[float], values: Sequence[float], t: float) -> float:
+    """Linear interpolation, held constant beyond the first and last sample."""
+    i = bisect.bisect_right(times, t)
+    if i == 0:
+        return values[0]
+    if i == len(times):
+        return values[-1]
+    t0, t1 = times[i - 1], times[i]
+    return values[i - 1] + (values[i] - values[i - 1]) * (t - t0) / (t1 - t0)

@@ -1,0 +1,39 @@
+"""The numba options of every compiled kernel, fixed in one place.
+
+* :func:`inline_kernel`: helpers inlined into their callers (never cached on their own);
+* :func:`sized_kernel`: kernels made per state size by a factory (closures). They are not
+  cached: numba keys a cached closure by its name and source line, which every size shares,
+  so a cache folder could hand one size's code to another. The module-level entries that call
+  them carry their code into the cache instead;
+* :func:`entry_kernel`: module-level entry points, cached on disk (the folder is keyed by the
+  sources, see ``transplanter_ident/__init__.py``). ``runtime=False`` compiles without numba's
+  runtime (NRT) for kernels that allocate nothing: with it every call increfs and decrefs its
+  array arguments atomically, which took half of a filter step (numba issues #2345, #2350).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numba
+
+
+def inline_kernel(fn: Callable[..., Any]) -> Any:
+    """A helper compiled into each caller."""
+    return numba.njit(cache=False, inline="always")(fn)
+
+
+def sized_kernel(fn: Callable[..., Any] | None = None, *, runtime: bool = True) -> Any:
+    """A kernel made by a per-size factory (not cached; see the module docstring)."""
+    options: dict[str, Any] = {"cache": False} if runtime else {"cache": False, "_nrt": False}
+
+    def wrap(f: Callable[..., Any]) -> Any:
+        return numba.njit(**options)(f)
+
+    return wrap(fn) if fn is not None else wrap
+
+
+def entry_kernel(fn: Callable[..., Any]) -> Any:
+    """A module-level entry point, cached on disk."""
+    return numba.njit(cache=True)(fn)
