@@ -47,6 +47,7 @@ sys.path.insert(0, str(ROOT))
 import transplanter_ident.ekf.kernels as ekf  # noqa: E402
 from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams  # noqa: E402
 from transplanter_ident.tuning.problem import batch_objective  # noqa: E402
+from transplanter_ident.ekf.layout import N_MEMO, N_MODEL
 
 REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "bench" / "ekf_reference.c"
 TARGET_RATIO = 2.0
@@ -111,8 +112,8 @@ def time_kernel(case: Case, rows: np.ndarray, runs: int) -> float:
     qs = [candidate_q(case, a, i) for i in range(runs)]
 
     def one(q: np.ndarray) -> float:
-        return ekf.objective_kernel(rows, a.initial_state.copy(), a.initial_covariance.copy(), np.zeros(3),
-                                    np.zeros(3), a.vehicle, a.settings, q, a.measurement_noise, ekf.MAE)
+        return ekf.objective_kernel(rows, a.initial_state.copy(), a.initial_covariance.copy(), np.zeros(N_MODEL),
+                                    np.zeros(N_MEMO), a.vehicle, a.settings, q, a.measurement_noise, ekf.MAE)
 
     one(qs[0])  # compile / load from cache
     start = time.perf_counter()

@@ -24,14 +24,18 @@ NO_NOISE = SensorNoise(velocity=0.0, heading=0.0, steering=0.0)
 TABLE1_VEHICLE = VehicleParams(mass=720.0, lf=0.7, lr=0.4, iz=201.6, max_steering=math.radians(20.0))
 
 
-def sim_samples(result: SimResult) -> list[Sample]:
-    """The simulator's sensor streams as (topic, stamp, values) samples in time order."""
+def sim_samples(result: SimResult, *, gnss_first: bool = False) -> list[Sample]:
+    """The simulator's sensor streams as (topic, stamp, values) samples in time order.
+
+    At equal stamps steering comes first, or last with ``gnss_first``.
+    """
+    order = dict(_TOPIC_ORDER, steering=3) if gnss_first else _TOPIC_ORDER
     keyed: list[tuple[float, int, Sample]] = []
-    for t, (east, north), heading in zip(result.gnss_time, result.velocity_enu, result.heading, strict=True):
-        keyed.append((float(t), _TOPIC_ORDER["velocity"], ("velocity", float(t), (float(east), float(north)))))
-        keyed.append((float(t), _TOPIC_ORDER["heading"], ("heading", float(t), (float(heading),))))
+    for t, (east, north), heading in zip(result.gnss_stamp, result.velocity_enu, result.heading, strict=True):
+        keyed.append((float(t), order["velocity"], ("velocity", float(t), (float(east), float(north)))))
+        keyed.append((float(t), order["heading"], ("heading", float(t), (float(heading),))))
     for t, angle in zip(result.steering_time, result.steering, strict=True):
-        keyed.append((float(t), _TOPIC_ORDER["steering"], ("steering", float(t), (float(angle),))))
+        keyed.append((float(t), order["steering"], ("steering", float(t), (float(angle),))))
     keyed.sort(key=lambda item: (item[0], item[1]))
     return [sample for _, _, sample in keyed]
 
@@ -63,7 +67,9 @@ def paper_config(vehicle: VehicleParams = TABLE1_VEHICLE) -> EstimatorConfig:
     """The paper's filter: z = [vy, r], forward Euler, linear stiffness, Cf = Cr = 1000 N/rad to start."""
     return EstimatorConfig(
         vehicle=vehicle,
-        options=FilterOptions(discretization="euler", stiffness_state="linear", measurement="yaw_rate"),
+        options=FilterOptions(discretization="euler", stiffness_state="linear", measurement="yaw_rate",
+                              process_noise_units="per_step", estimate_steering_offset=False,
+                              linear_range_check=False, change_detection=False),
         noise=NoiseParams(
             process_noise=(1.0e-4, 1.0e-4, 100.0, 100.0),
             measurement_noise=(4.0e-4, 1.0e-3),

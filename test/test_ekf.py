@@ -10,7 +10,7 @@ import pytest
 from helpers import paper_config, simulate_epochs
 
 from transplanter_ident.config.parameters import EstimatorConfig, NoiseParams
-from transplanter_ident.ekf.entries import predict
+from transplanter_ident.ekf.entries import ekf_step, predict
 from transplanter_ident.ekf.joint_ekf import (
     Estimate,
     FilterArrays,
@@ -18,12 +18,27 @@ from transplanter_ident.ekf.joint_ekf import (
     run_sequence,
     sequence_objective,
 )
-from transplanter_ident.ekf.layout import N_OUTPUTS, O_CF, O_CR, O_E0, O_E1, O_STATUS, W_F, StepStatus
+from transplanter_ident.ekf.layout import (
+    N_MEMO,
+    N_MODEL,
+    N_OUTPUTS,
+    O_CF,
+    O_CR,
+    O_E0,
+    O_E1,
+    O_STATUS,
+    W_F,
+    X_OFFSET,
+    X_THETA_F,
+    X_THETA_R,
+    StepStatus,
+)
 from transplanter_ident.ekf.model import work_buffer
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
 from transplanter_ident.sim.simulator import SimConfig
 
 TRUE_CF, TRUE_CR = 8000.0, 10000.0
+STIFFNESS = [X_THETA_F, X_THETA_R]  # the two stiffness states
 DEFAULT = EstimatorConfig()
 CONFIGS = {"default": DEFAULT, "paper": paper_config()}
 INJECT = 100  # epoch index (t = 20 s) at which bad input is injected, after the initial convergence
@@ -43,14 +58,15 @@ def clean_rows(sequence) -> np.ndarray:
 
 
 def row(estimate: Estimate) -> np.ndarray:
-    """An Estimate back in the kernel's output-row layout."""
+    """An Estimate's kernel output row, checked against its named fields."""
     values = [int(estimate.status), estimate.lateral_velocity, estimate.yaw_rate,
               estimate.cornering_stiffness_front, estimate.cornering_stiffness_rear,
               estimate.cornering_stiffness_front_std, estimate.cornering_stiffness_rear_std,
               estimate.lateral_velocity_model, estimate.yaw_rate_model, *estimate.innovation,
               *estimate.innovation_covariance, estimate.normalized_innovation_squared]
-    assert len(values) == N_OUTPUTS
-    return np.array(values, dtype=np.float64)
+    assert len(estimate.row) == N_OUTPUTS
+    np.testing.assert_array_equal(np.array(estimate.row[:len(values)]), np.array(values, dtype=np.float64))
+    return np.array(estimate.row, dtype=np.float64)
 
 
 def step_all(ekf: JointEKF, epochs: list[Epoch]) -> np.ndarray:
@@ -83,8 +99,8 @@ def test_step_by_step_equals_run_sequence(sequence, name):
 
 
 def test_objective_is_the_mean_absolute_innovation(sequence, clean_rows):
-    """sequence_objective('mae') is eq. (21) over the epochs with a prediction (UPDATED or GATED)."""
-    predicted = clean_rows[:, O_STATUS] <= StepStatus.GATED
+    """sequence_objective('mae') is eq. (21) over the epochs with a prediction (UPDATED, GATED, NONLINEAR)."""
+    predicted = np.isin(clean_rows[:, O_STATUS], [StepStatus.UPDATED, StepStatus.GATED, StepStatus.NONLINEAR])
     expected = np.mean(np.abs(clean_rows[predicted, O_E0]) + np.abs(clean_rows[predicted, O_E1]))
     assert sequence_objective(DEFAULT, sequence, "mae") == pytest.approx(expected, rel=1e-12)
     assert math.isfinite(sequence_objective(DEFAULT, sequence, "nll"))
@@ -93,7 +109,7 @@ def test_objective_is_the_mean_absolute_innovation(sequence, clean_rows):
 # --------------------------------------------------------------------------- bad numbers (DESIGN.md section 6)
 
 
-FILTER_FIELDS = ("t", "lateral_velocity", "heading", "yaw_rate", "steering", "steering_rate", "speed")
+FILTER_FIELDS = ("t", "antenna_lateral_velocity", "heading", "yaw_rate", "steering", "steering_rate", "speed")
 
 
 @pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf])
@@ -146,7 +162,7 @@ def assert_recovers(ekf: JointEKF, rest: list[Epoch], clean_rows: np.ndarray) ->
     on this seed).
     """
     rows = step_all(ekf, rest)
-    assert np.all(rows[1:, O_STATUS] == StepStatus.UPDATED)
+    assert np.all(np.isin(rows[1:, O_STATUS], [StepStatus.UPDATED, StepStatus.NONLINEAR]))
     final = rows[-1]
     assert final[O_CF] == pytest.approx(TRUE_CF, rel=0.03)
     assert final[O_CR] == pytest.approx(TRUE_CR, rel=0.03)
@@ -165,13 +181,13 @@ def test_slow_or_reversing_epoch_holds_the_stiffness(sequence, clean_rows, speed
     epochs = epoch_list(sequence)
     ekf = JointEKF(DEFAULT)
     step_all(ekf, epochs[:INJECT])
-    stiffness, variance = ekf.state[-2:].copy(), np.diag(ekf.covariance)[-2:].copy()
+    stiffness, variance = ekf.state[STIFFNESS].copy(), np.diag(ekf.covariance)[STIFFNESS].copy()
     slow = dataclasses.replace(epochs[INJECT], speed=speed)
     estimate = ekf.step(slow)
     assert estimate.status is status
     assert np.all(np.isfinite(row(estimate)))
-    np.testing.assert_array_equal(ekf.state[-2:], stiffness)
-    np.testing.assert_array_equal(np.diag(ekf.covariance)[-2:], variance)
+    np.testing.assert_array_equal(ekf.state[STIFFNESS], stiffness)
+    np.testing.assert_array_equal(np.diag(ekf.covariance)[STIFFNESS], variance)
     assert ekf.state[0] == slow.lateral_velocity and ekf.state[1] == slow.yaw_rate and ekf.state[2] == slow.heading
     assert_recovers(ekf, epochs[INJECT + 1:], clean_rows)
 
@@ -181,12 +197,12 @@ def test_gap_reinitialises_the_motion_states(sequence, clean_rows):
     epochs = epoch_list(sequence)
     ekf = JointEKF(DEFAULT)
     step_all(ekf, epochs[:INJECT])
-    stiffness = ekf.state[-2:].copy()
+    stiffness = ekf.state[STIFFNESS].copy()
     after_gap = INJECT + 15  # 3 s later at 5 Hz
     assert epochs[after_gap].t - epochs[INJECT - 1].t > DEFAULT.options.max_interval
     estimate = ekf.step(epochs[after_gap])
     assert estimate.status is StepStatus.GAP
-    np.testing.assert_array_equal(ekf.state[-2:], stiffness)
+    np.testing.assert_array_equal(ekf.state[STIFFNESS], stiffness)
     assert ekf.state[0] == epochs[after_gap].lateral_velocity
     assert_recovers(ekf, epochs[after_gap + 1:], clean_rows)
 
@@ -195,7 +211,7 @@ def test_run_sequence_handles_bad_epochs_like_step(sequence):
     """A sequence salted with every kind of bad epoch: the kernel loop gives the same rows as stepping."""
     epochs = epoch_list(sequence)
     salted = list(epochs[:50])
-    salted.append(dataclasses.replace(epochs[50], lateral_velocity=math.nan))
+    salted.append(dataclasses.replace(epochs[50], antenna_lateral_velocity=math.nan))
     salted.append(dataclasses.replace(epochs[50], heading=math.inf))
     salted.append(dataclasses.replace(epochs[50], t=epochs[49].t))
     salted.append(dataclasses.replace(epochs[50], speed=-1.0))
@@ -219,38 +235,46 @@ def test_outlier_is_gated_and_does_not_move_the_stiffness(sequence, clean_rows):
     epochs = epoch_list(sequence)
     ekf = JointEKF(DEFAULT)
     step_all(ekf, epochs[:INJECT])
-    stiffness = ekf.state[-2:].copy()
-    estimate = ekf.step(dataclasses.replace(epochs[INJECT], lateral_velocity=epochs[INJECT].lateral_velocity + 1.0))
+    stiffness = ekf.state[STIFFNESS].copy()
+    estimate = ekf.step(outlier(epochs[INJECT]))
     assert estimate.status is StepStatus.GATED
     assert estimate.normalized_innovation_squared > DEFAULT.options.gate_threshold
-    np.testing.assert_array_equal(ekf.state[-2:], stiffness)
+    np.testing.assert_array_equal(ekf.state[STIFFNESS], stiffness)
     assert estimate.cornering_stiffness_front == clean_rows[INJECT - 1, O_CF]
     assert estimate.cornering_stiffness_rear == clean_rows[INJECT - 1, O_CR]
     assert_recovers(ekf, epochs[INJECT + 1:], clean_rows)
 
 
-def test_gate_accepts_after_max_gated_consecutive_outliers(sequence):
+def outlier(epoch: Epoch) -> Epoch:
+    """The epoch with a 1 m/s error in the measured lateral velocity (50 sigma of R)."""
+    return dataclasses.replace(epoch, antenna_lateral_velocity=epoch.antenna_lateral_velocity + 1.0)
+
+
+def test_repeatedly_gated_measurement_reinitialises_the_motion_and_never_moves_the_stiffness(sequence):
+    """max_gated epochs in a row fail the gate: the last one re-initialises the motion states.
+
+    The motion states come from the measurement (REINITIALISED); no stiffness update is forced through.
+    """
     epochs = epoch_list(sequence)
     max_gated = DEFAULT.options.max_gated
     ekf = JointEKF(DEFAULT)
     step_all(ekf, epochs[:INJECT])
-    statuses = []
-    for k in range(INJECT, INJECT + max_gated + 1):
-        statuses.append(ekf.step(dataclasses.replace(epochs[k], lateral_velocity=epochs[k].lateral_velocity + 1.0))
-                        .status)
-    assert statuses == [StepStatus.GATED] * max_gated + [StepStatus.UPDATED]
+    stiffness = ekf.state[STIFFNESS].copy()
+    statuses = [ekf.step(outlier(epochs[k])).status for k in range(INJECT, INJECT + max_gated)]
+    assert statuses == [StepStatus.GATED] * (max_gated - 1) + [StepStatus.REINITIALISED]
+    np.testing.assert_array_equal(ekf.state[STIFFNESS], stiffness)
+    assert ekf.state[0] == outlier(epochs[INJECT + max_gated - 1]).antenna_lateral_velocity
     # a good epoch in between restarts the count
     ekf = JointEKF(DEFAULT)
     step_all(ekf, epochs[:INJECT])
     statuses = []
-    for k in range(INJECT, INJECT + 2 * max_gated + 1):
-        epoch = epochs[k]
-        if k != INJECT + max_gated - 1:
-            epoch = dataclasses.replace(epoch, lateral_velocity=epoch.lateral_velocity + 1.0)
-        statuses.append(ekf.step(epoch).status)
-    assert statuses[: max_gated - 1] == [StepStatus.GATED] * (max_gated - 1)
-    assert statuses[max_gated - 1] is StepStatus.UPDATED
-    assert statuses[max_gated:] == [StepStatus.GATED] * max_gated + [StepStatus.UPDATED]
+    for k in range(INJECT, INJECT + 2 * max_gated):
+        statuses.append(ekf.step(epochs[k] if k == INJECT + max_gated - 2 else outlier(epochs[k])).status)
+    assert statuses[: max_gated - 2] == [StepStatus.GATED] * (max_gated - 2)
+    assert statuses[max_gated - 2] is StepStatus.UPDATED
+    # the count restarts after a re-initialisation too
+    assert statuses[max_gated - 1:] == [StepStatus.GATED] * (max_gated - 1) + [StepStatus.REINITIALISED,
+                                                                               StepStatus.GATED]
 
 
 # --------------------------------------------------------------------------- the update itself
@@ -258,7 +282,7 @@ def test_gate_accepts_after_max_gated_consecutive_outliers(sequence):
 
 @pytest.mark.parametrize("name", list(CONFIGS))
 def test_update_is_the_textbook_kalman_update(sequence, name):
-    """One step = P- = F P F^T + Q; K = P- H^T S^-1; x+ = x- + K (z - H x-); P+ = (I - K H) P- (rel 1e-9).
+    """One step = P- = F P F^T + Q dt; K = P- H^T S^-1; x+ = x- + K (z - H x-); P+ = (I - K H) P- (rel 1e-9).
 
     F and x- come from ekf.predict (tested against finite differences in test_model.py); the rest is
     numpy. This checks eq. (12) and the Joseph form (including its K R K^T term) in the kernel.
@@ -276,11 +300,13 @@ def test_update_is_the_textbook_kalman_update(sequence, name):
             epoch.steering, epoch.steering_rate, ws)
     n = len(x)
     jac = ws[W_F, :n, :n].copy()
-    p_pred = jac @ p @ jac.T + np.diag(arrays.process_noise)
+    dt = epoch.t - epochs[INJECT - 1].t
+    p_pred = jac @ p @ jac.T + np.diag(arrays.process_noise) * dt  # Q is a density
     h = np.zeros((2, n))
     h[0, 0] = 1.0
+    h[0, 1] = config.vehicle.antenna_x  # the lever arm: z_vy = vy + antenna_x r
     h[1, 2 if heading else 1] = 1.0
-    z = np.array([epoch.lateral_velocity, epoch.heading if heading else epoch.yaw_rate])
+    z = np.array([epoch.antenna_lateral_velocity, epoch.heading if heading else epoch.yaw_rate])
     innovation = z - h @ x_pred
     s = h @ p_pred @ h.T + np.diag(arrays.measurement_noise)
     gain = p_pred @ h.T @ np.linalg.inv(s)
@@ -294,6 +320,7 @@ def test_update_is_the_textbook_kalman_update(sequence, name):
                                                                    rel=1e-9)
     np.testing.assert_allclose(ekf.state, x_new, rtol=1e-9, atol=1e-12)
     scale = np.sqrt(np.outer(np.diag(p_new), np.diag(p_new)))
+    scale = np.where(scale > 0.0, scale, 1.0)  # a fixed steering offset has no variance
     np.testing.assert_allclose(ekf.covariance / scale, p_new / scale, rtol=0.0, atol=1e-9)
 
 
@@ -311,7 +338,8 @@ def test_covariance_stays_symmetric_positive_semidefinite(name):
         np.testing.assert_array_equal(p, p.T)
         eig = np.linalg.eigvalsh(p)
         assert eig[0] >= -1e-12 * eig[-1], f"t={epoch.t}: eigenvalues {eig}"
-        assert np.all(np.diag(p) > 0.0)
+        estimated = np.diag(p) if CONFIGS[name].options.estimate_steering_offset else np.diag(p)[:-1]
+        assert np.all(estimated > 0.0)
 
 
 # --------------------------------------------------------------------------- run-time changes
@@ -332,11 +360,12 @@ def test_set_noise_keeps_the_state_and_changes_q_and_r(sequence):
         np.testing.assert_array_equal(changed.covariance, reference.covariance)
         a, b = changed.step(epochs[INJECT]), reference.step(epochs[INJECT])
         assert a.status is b.status is StepStatus.UPDATED
-        # S = F P F^T + Q + R on the measured states (vy, psi): the difference is exactly the change
+        # S = F P F^T + Q dt + R on the measured states (vy, psi): the difference is exactly the change
         (s00_a, s01_a, s11_a), (s00_b, s01_b, s11_b) = a.innovation_covariance, b.innovation_covariance
         d_q = np.array(noise.process_noise) - np.array(base.process_noise)
         d_r = np.array(noise.measurement_noise) - np.array(base.measurement_noise)
-        assert s00_a - s00_b == pytest.approx(d_q[0] + d_r[0], rel=1e-9, abs=1e-15)
+        dt = epochs[INJECT].t - epochs[INJECT - 1].t
+        assert s00_a - s00_b == pytest.approx(d_q[0] * dt + d_r[0], rel=1e-9, abs=1e-15)
         assert s11_a - s11_b == pytest.approx(d_r[1], rel=1e-9, abs=1e-15)  # heading's Q is unchanged
         assert s01_a == pytest.approx(s01_b, rel=1e-9, abs=1e-15)
         assert a.cornering_stiffness_front != b.cornering_stiffness_front
@@ -346,7 +375,8 @@ def test_reset_restores_the_initial_state(sequence):
     epochs = epoch_list(sequence)
     fresh = JointEKF(DEFAULT)
     initial_state, initial_covariance = fresh.state.copy(), fresh.covariance.copy()
-    assert initial_state[-2:] == pytest.approx(np.log(DEFAULT.noise.initial_stiffness), rel=1e-15)
+    assert initial_state[STIFFNESS] == pytest.approx(np.log(DEFAULT.noise.initial_stiffness), rel=1e-15)
+    assert initial_state[X_OFFSET] == DEFAULT.vehicle.steering_offset
     first = step_all(fresh, epochs[:60])
     ekf = JointEKF(DEFAULT)
     step_all(ekf, epochs[:INJECT])
@@ -359,4 +389,17 @@ def test_reset_restores_the_initial_state(sequence):
     noise = NoiseParams(initial_covariance=(1.0e-2, 1.0e-2, 1.0, 2.0))
     ekf.set_noise(noise)
     ekf.reset()
-    assert np.diag(ekf.covariance)[-2:] == pytest.approx([1.0, 2.0])
+    assert np.diag(ekf.covariance)[STIFFNESS] == pytest.approx([1.0, 2.0])
+
+
+@pytest.mark.parametrize("array", ["memo", "model", "q", "out", "ws"])
+def test_a_wrong_array_size_raises_instead_of_corrupting_memory(array: str) -> None:
+    """The compiled step does not bounds-check; the entry point checks every shape first."""
+    a = FilterArrays.from_config(DEFAULT)
+    args = {"memo": np.zeros(N_MEMO), "model": np.zeros(N_MODEL), "q": a.process_noise.copy(),
+            "out": np.zeros(N_OUTPUTS), "ws": work_buffer()}
+    args[array] = args[array][..., :-1].copy()  # one entry short
+    with pytest.raises(ValueError, match=array):
+        ekf_step(a.initial_state.copy(), a.initial_covariance.copy(), args["model"], args["memo"], a.vehicle,
+                 a.settings, args["q"], a.measurement_noise, 1.0, 2.0, 0.0, 0.0, 0.0, 0.0, 0.0, args["ws"],
+                 args["out"])

@@ -56,7 +56,7 @@ def run_predict(arrays: FilterArrays, x: np.ndarray, dt: float, speed: float, st
     """(f(x), F, propagated open-loop model) from ekf.predict on copies."""
     x_new = x.copy()
     model = np.zeros(3)
-    model[: len(x) - 2] = x[: len(x) - 2]
+    model[: len(x) - 3] = x[: len(x) - 3]
     ws = work_buffer()
     predict(x_new, model, arrays.vehicle, arrays.settings, dt, speed, steering, steering_rate, ws)
     n = len(x)
@@ -110,21 +110,23 @@ def analytic_jacobian(discretization: str, log_state: bool, x: np.ndarray, vx: f
                       steering: float, steering_rate: float) -> np.ndarray:
     """F built from scipy: expm and its Frechet derivative (exact) or I + M dt (Euler), chain rule for ln C."""
     n = len(x)
-    nd = n - 2
+    nd = n - 3  # motion states, then theta_f, theta_r and the steering offset b
     cf, cr = (math.exp(x[nd]), math.exp(x[nd + 1])) if log_state else (x[nd], x[nd + 1])
+    wheel = steering - x[nd + 2]
     m, dm_f, dm_r = augmented(cf, cr, vx, nd == 3)
     if discretization == "exact":
         e, de_f = scipy.linalg.expm_frechet(m * dt, dm_f * dt)
         de_r = scipy.linalg.expm_frechet(m * dt, dm_r * dt, compute_expm=False)
-        inputs = [steering - 0.5 * dt * steering_rate, steering_rate]  # the ramp with this mean and slope
+        inputs = [wheel - 0.5 * dt * steering_rate, steering_rate]  # the ramp with this mean and slope
     else:
         e, de_f, de_r = np.eye(nd + 2) + m * dt, dm_f * dt, dm_r * dt
-        inputs = [steering, 0.0]  # eq. (10) holds the interval mean
+        inputs = [wheel, 0.0]  # eq. (10) holds the interval mean
     z = np.concatenate([x[:nd], inputs])
     jac = np.eye(n)
     jac[:nd, :nd] = e[:nd, :nd]
     jac[:nd, nd] = (de_f @ z)[:nd] * (cf if log_state else 1.0)
     jac[:nd, nd + 1] = (de_r @ z)[:nd] * (cr if log_state else 1.0)
+    jac[:nd, nd + 2] = -e[:nd, nd]  # wheel = sensor - b
     return jac
 
 
@@ -150,17 +152,19 @@ def test_prediction_jacobian_matches_central_differences(discretization, stiffne
         if measurement == "heading":
             motion.append(rng.uniform(-math.pi, math.pi))
         theta = [math.log(cf), math.log(cr)] if log_state else [cf, cr]
-        x = np.array(motion + theta)
+        x = np.array(motion + theta + [rng.uniform(-0.03, 0.03)])
         n = len(x)
         where = f"{discretization}/{stiffness}/{measurement} Cf={cf:.0f} Cr={cr:.0f} vx={vx:.2f} dt={dt:.3f}"
         f0, jac, model = run_predict(arrays, x, dt, vx, steering, steering_rate)
         assert np.all(np.isfinite(f0)) and np.all(np.isfinite(jac))
         # the open-loop model goes through the same transition
-        np.testing.assert_array_equal(model[: n - 2], f0[: n - 2])
-        # the stiffness is a random walk
-        np.testing.assert_array_equal(f0[n - 2:], x[n - 2:])
+        np.testing.assert_array_equal(model[: n - 3], f0[: n - 3])
+        # the stiffness and the offset are random walks
+        np.testing.assert_array_equal(f0[n - 3:], x[n - 3:])
         for j in range(n):
-            if j >= n - 2:
+            if j == n - 1:
+                step = 1e-6
+            elif j >= n - 3:
                 step = 1e-6 if log_state else 1e-6 * abs(x[j])
             else:
                 step = 1e-6 * max(abs(x[j]), 1.0)
@@ -182,7 +186,7 @@ def test_prediction_jacobian_matches_central_differences(discretization, stiffne
 def test_jacobian_stiffness_columns_are_not_trivial():
     """Guard against a vacuous finite-difference test: the stiffness columns carry real sensitivity."""
     arrays = settings_for("exact", "log", "heading")
-    x = np.array([0.05, 0.1, 0.3, math.log(8000.0), math.log(10000.0)])
+    x = np.array([0.05, 0.1, 0.3, math.log(8000.0), math.log(10000.0), 0.01])
     _, jac, _ = run_predict(arrays, x, 0.2, 2.0, 0.2, 0.3)
     assert np.all(np.abs(jac[:3, 3:]) > 1e-4)
 
@@ -301,7 +305,7 @@ def test_exact_prediction_follows_a_steering_ramp(measurement):
 
         reference = solve_ivp(rhs, (0.0, dt), motion0, method="DOP853", rtol=1e-13, atol=1e-15).y[:, -1]
         nd = 3 if measurement == "heading" else 2
-        x = np.concatenate([motion0[:nd], [cf, cr]])
+        x = np.concatenate([motion0[:nd], [cf, cr, 0.0]])
         mean = start + 0.5 * slope * dt  # what the assembler's interval_line reports for a ramp
         got, _, _ = run_predict(arrays, x, dt, vx, mean, slope)
         scale = np.max(np.abs(reference[:nd]))

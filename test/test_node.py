@@ -32,7 +32,7 @@ from transplanter_ident.config.params_file import (
 )
 from transplanter_ident.ekf.joint_ekf import JointEKF
 from transplanter_ident.ekf.layout import StepStatus
-from transplanter_ident.epochs.assembler import EpochAssembler
+from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler
 from transplanter_ident.epochs.frames import quaternion_yaw
 from transplanter_ident.evaluation.health import should_publish
 from transplanter_ident.sim.signals import sine_steering
@@ -131,9 +131,7 @@ def offline_outputs(samples: list, params: EstimatorParams, noise_switch: dict[i
     ``noise_switch``: sample index -> new noise applied before that sample; ``resets``: sample
     indices before which filter and assembler restart.
     """
-    from transplanter_ident.ros.node import assembler_settings
-
-    assembler = EpochAssembler(assembler_settings(params))
+    assembler = EpochAssembler(AssemblerSettings.from_params(params))
     ekf = JointEKF(params.config)
     adders = {"velocity": assembler.add_velocity, "heading": assembler.add_heading,
               "steering": assembler.add_steering}
@@ -360,13 +358,12 @@ def test_online_equals_offline(tmp_path: Path, executor: str) -> None:
     from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD, O_STATUS
     from transplanter_ident.epochs.assembler import assemble
     from transplanter_ident.epochs.epoch import EpochArrays
-    from transplanter_ident.ros.node import assembler_settings
 
     params = EstimatorParams()
     bag = sample_bag(tmp_path)
     specs = bag_specs(bag, params)
     # what replay does: the bag's samples -> EpochAssembler -> run_sequence (full precision)
-    epochs = EpochArrays(assemble(EpochAssembler(assembler_settings(params)), specs_to_samples(specs)))
+    epochs = EpochArrays(assemble(EpochAssembler(AssemblerSettings.from_params(params)), specs_to_samples(specs)))
     outputs = run_sequence(params.config, epochs)
     assert all(should_publish(StepStatus(int(s))) for s in outputs[:, O_STATUS]), "a clean bag publishes every epoch"
     expected = len(epochs)

@@ -10,6 +10,8 @@ from helpers import simulate_epochs
 
 import transplanter_ident.ekf as ekf
 from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams
+from transplanter_ident.ekf.joint_ekf import kernel_input
+from transplanter_ident.ekf.layout import HEADING_STATES, X_PSI
 from transplanter_ident.sim.scenarios import build_config
 from transplanter_ident.tuning.benchmark_functions import ackley, random_search, rastrigin, shifted
 from transplanter_ident.tuning.box import Box
@@ -263,7 +265,7 @@ def test_candidate_matrices_follow_the_filter_layout(measurement: str) -> None:
     np.testing.assert_allclose(qs[0], arrays.process_noise)
     np.testing.assert_allclose(rs[0], arrays.measurement_noise)
     if measurement == "heading":
-        assert qs.shape == (1, 5) and qs[0, 2] == 5.0e-9
+        assert qs.shape == (1, HEADING_STATES) and qs[0, X_PSI] == 5.0e-9
 
 
 @pytest.fixture(scope="module")
@@ -294,8 +296,8 @@ def test_divergence_gets_a_finite_penalty(sine_epochs) -> None:  # noqa: ANN001
     config = EstimatorConfig(options=FilterOptions(discretization="euler", stiffness_state="linear",
                                                    measurement="yaw_rate"))
     a = ekf.FilterArrays.from_config(config)
-    qs = np.array([[1e-1, 1e-1, 1e12, 1e12]])
+    qs = np.array([[1e-1, 1e-1, 1e12, 1e12, 0.0]])  # vy, r, Cf, Cr, steering offset
     rs = np.array([[1e-12, 1e-12]])
-    value = batch_objective(sine_epochs.kernel_input(), a.initial_state, a.initial_covariance, a.vehicle,
+    value = batch_objective(kernel_input(sine_epochs), a.initial_state, a.initial_covariance, a.vehicle,
                             a.settings, qs, rs, ekf.MAE)[0]
     assert math.isfinite(value) and 0.0 < value <= ekf.DIVERGENCE_PENALTY

@@ -8,21 +8,20 @@ from pathlib import Path
 
 __version__ = "0.1.0"
 
-_COMPILED_PACKAGES = ("ekf", "tuning")
 
 
 def _numba_cache_dir() -> Path:
     """A numba cache folder keyed by the compiled sources.
 
     numba invalidates a cached function only when its own file changes, but the kernels inline
-    code of other modules: keying the folder by all compiled sources keeps the cache honest.
+    code of other modules (and take their options from jit.py): keying the folder by every
+    source of the package keeps the cache honest.
     """
     here = Path(__file__).resolve().parent
     digest = hashlib.sha256()
-    for package in _COMPILED_PACKAGES:
-        for path in sorted((here / package).glob("*.py")):
-            digest.update(path.name.encode())
-            digest.update(path.read_bytes())
+    for path in sorted(here.rglob("*.py")):
+        digest.update(str(path.relative_to(here)).encode())
+        digest.update(path.read_bytes())
     root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
     return root / "transplanter_ident" / f"numba-{digest.hexdigest()[:16]}"
 

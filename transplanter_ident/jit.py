@@ -5,10 +5,14 @@
   cached: numba keys a cached closure by its name and source line, which every size shares,
   so a cache folder could hand one size's code to another. The module-level entries that call
   them carry their code into the cache instead;
-* :func:`entry_kernel`: module-level entry points, cached on disk (the folder is keyed by the
+* :func:`entry_kernel` (and :func:`parallel_entry_kernel`, with prange loops on all threads):
+  module-level entry points, cached on disk (the folder is keyed by the
   sources, see ``transplanter_ident/__init__.py``). ``runtime=False`` compiles without numba's
   runtime (NRT) for kernels that allocate nothing: with it every call increfs and decrefs its
   array arguments atomically, which took half of a filter step (numba issues #2345, #2350).
+
+Every kernel uses numpy's error model: a division by zero gives inf or NaN, which the filter's
+health check rolls back, instead of raising from compiled code.
 """
 
 from __future__ import annotations
@@ -21,12 +25,14 @@ import numba
 
 def inline_kernel(fn: Callable[..., Any]) -> Any:
     """A helper compiled into each caller."""
-    return numba.njit(cache=False, inline="always")(fn)
+    return numba.njit(cache=False, inline="always", error_model="numpy")(fn)
 
 
 def sized_kernel(fn: Callable[..., Any] | None = None, *, runtime: bool = True) -> Any:
     """A kernel made by a per-size factory (not cached; see the module docstring)."""
-    options: dict[str, Any] = {"cache": False} if runtime else {"cache": False, "_nrt": False}
+    options: dict[str, Any] = {"cache": False, "error_model": "numpy"}
+    if not runtime:
+        options["_nrt"] = False
 
     def wrap(f: Callable[..., Any]) -> Any:
         return numba.njit(**options)(f)
@@ -36,4 +42,9 @@ def sized_kernel(fn: Callable[..., Any] | None = None, *, runtime: bool = True) 
 
 def entry_kernel(fn: Callable[..., Any]) -> Any:
     """A module-level entry point, cached on disk."""
-    return numba.njit(cache=True)(fn)
+    return numba.njit(cache=True, error_model="numpy")(fn)
+
+
+def parallel_entry_kernel(fn: Callable[..., Any]) -> Any:
+    """A module-level entry point whose ``numba.prange`` loops run on all threads, cached on disk."""
+    return numba.njit(cache=True, parallel=True, error_model="numpy")(fn)

@@ -181,13 +181,6 @@ def _select_truth(reader: Reader, notes: list[str]) -> _Table:
     return table
 
 
-def _settings(params: Any) -> AssemblerSettings:
-    vehicle = params.config.vehicle
-    return AssemblerSettings(velocity_frame=params.frames.velocity, heading_frame=params.frames.heading,
-                             antenna_x=vehicle.antenna_x, antenna_y=vehicle.antenna_y,
-                             max_steering=vehicle.max_steering)
-
-
 class _Scan:
     """One streaming pass: yields input samples, collects truth, unusable messages and counts."""
 
@@ -278,7 +271,7 @@ def read_bag(path: str | Path, params: Any, *, truth: bool = True, progress: boo
     or no epoch can be formed.
     """
     scan = _Scan(path, params, truth=truth, progress=progress)
-    assembler = EpochAssembler(_settings(params))
+    assembler = EpochAssembler(AssemblerSettings.from_params(params))
     epochs = assemble(assembler, scan.samples())
     rejections = scan.rejections + assembler.drain_rejections()
     rejections.sort(key=lambda r: r.stamp)

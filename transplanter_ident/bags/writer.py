@@ -206,6 +206,7 @@ class SimBagOptions:
     gnss_frame_id: str = "gnss_link"
     velocity_std: float = 0.02  # m/s, reported in TwistWithCovarianceStamped
     heading_std: float = math.radians(0.2)  # rad, reported in Imu
+    gnss_first: bool = False  # at equal times, log GNSS before the same-instant steering sample
 
     def __post_init__(self) -> None:
         for name, choices in (("velocity_type", ("twist", "twist-cov")), ("heading_type", ("quaternion", "imu")),
@@ -215,26 +216,29 @@ class SimBagOptions:
                 raise ValueError(f"{name} must be one of {', '.join(choices)}, got {getattr(self, name)!r}")
 
 
-_STEER, _VEL, _HEAD, _TRUTH = 0, 1, 2, 3
+_STEER, _VEL, _HEAD, _STEER_LAST, _TRUTH = 0, 1, 2, 3, 4  # the write order at equal times
 
 
 def write_sim_bag(result: Any, path: str | Path, options: SimBagOptions | None = None) -> int:
     """Write a ``sim.SimResult`` as an MCAP rosbag2 directory; returns the number of messages.
 
-    At equal times the steering sample is written before the GNSS velocity and heading (the
-    steering at t_k is available when epoch t_k is formed), then the ground truth.
+    At equal times the steering sample is written before the GNSS velocity and heading, or after
+    them with ``gnss_first``; then the ground truth. GNSS messages carry ``result.gnss_stamp``
+    (late by the simulated GNSS delay); the truth is stamped at the motion's time.
     """
     opt = options or SimBagOptions()
     start_ns = to_ns(opt.start_time)
-    gnss_ns = start_ns + np.rint(np.asarray(result.gnss_time) * 1e9).astype(np.int64)
+    gnss_ns = start_ns + np.rint(np.asarray(result.gnss_stamp) * 1e9).astype(np.int64)
+    truth_ns = start_ns + np.rint(np.asarray(result.gnss_time) * 1e9).astype(np.int64)
     steer_ns = start_ns + np.rint(np.asarray(result.steering_time) * 1e9).astype(np.int64)
     n_gnss, n_steer = len(gnss_ns), len(steer_ns)
-    kinds = [np.full(n_steer, _STEER), np.full(n_gnss, _VEL), np.full(n_gnss, _HEAD)]
+    steer_kind = _STEER_LAST if opt.gnss_first else _STEER
+    kinds = [np.full(n_steer, steer_kind), np.full(n_gnss, _VEL), np.full(n_gnss, _HEAD)]
     times = [steer_ns, gnss_ns, gnss_ns]
     index = [np.arange(n_steer), np.arange(n_gnss), np.arange(n_gnss)]
     if opt.truth:
         kinds.append(np.full(n_gnss, _TRUTH))
-        times.append(gnss_ns)
+        times.append(truth_ns)
         index.append(np.arange(n_gnss))
     kind = np.concatenate(kinds)
     when = np.concatenate(times)
@@ -251,13 +255,13 @@ def write_sim_bag(result: Any, path: str | Path, options: SimBagOptions | None =
     vel_cov[[0, 7, 14]] = opt.velocity_std**2
     vel_list, heading_list = vel.tolist(), heading.tolist()
     steer_list = np.asarray(result.steering, dtype=np.float64).tolist()
-    gnss_list, steer_ns_list = gnss_ns.tolist(), steer_ns.tolist()
+    gnss_list, steer_ns_list, truth_list = gnss_ns.tolist(), steer_ns.tolist(), truth_ns.tolist()
     truth = (np.column_stack([result.truth_cf, result.truth_cr]).tolist(),
              np.column_stack([result.truth_vx, result.truth_vy, result.truth_yaw_rate]).tolist())
 
     with BagWriter(path, compress=opt.compress, overwrite=opt.overwrite) as bag:
         for k, i in zip(kind[order].tolist(), idx[order].tolist(), strict=True):
-            if k == _STEER:
+            if k in (_STEER, _STEER_LAST):
                 ns = steer_ns_list[i]
                 if opt.steering_type == "float64":
                     bag.write_float64(opt.steering_topic, ns, steer_list[i])
@@ -280,7 +284,7 @@ def write_sim_bag(result: Any, path: str | Path, options: SimBagOptions | None =
                 else:
                     bag.write_quaternion(opt.heading_topic, ns, q, frame_id=opt.gnss_frame_id)
             else:
-                ns = gnss_list[i]
+                ns = truth_list[i]
                 cf, cr = truth[0][i]
                 vx, vy, r = truth[1][i]
                 bag.write_vector3(TRUTH_STIFFNESS_TOPIC, ns, (cf, cr, 0.0), frame_id=OUTPUT_FRAME_ID)

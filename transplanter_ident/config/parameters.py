@@ -10,6 +10,7 @@ import math
 from dataclasses import dataclass, field
 
 DISCRETIZATIONS = ("exact", "euler")
+NOISE_UNITS = ("per_second", "per_step")
 STIFFNESS_STATES = ("log", "linear")
 MEASUREMENTS = ("heading", "yaw_rate")
 
@@ -25,13 +26,14 @@ class VehicleParams:
     antenna_x: float = 0.0
     antenna_y: float = 0.0
     max_steering: float = 0.7
+    steering_offset: float = 0.0  # rad: wheel angle = sensor - offset (initial value, or fixed)
 
     def __post_init__(self) -> None:
         for name in ("mass", "lf", "lr", "max_steering"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"vehicle.{name} must be a positive finite number, got {value!r}")
-        for name in ("iz", "antenna_x", "antenna_y"):
+        for name in ("iz", "antenna_x", "antenna_y", "steering_offset"):
             if not math.isfinite(getattr(self, name)):
                 raise ValueError(f"vehicle.{name} must be finite")
 
@@ -53,6 +55,16 @@ class FilterOptions:
     gate_threshold: float = 25.0  # Mahalanobis d^2 above which an update is gated
     max_gated: int = 5  # after this many consecutive gated epochs, accept the next one
     max_interval: float = 2.0  # s; a longer gap re-initialises the motion states
+    estimate_steering_offset: bool = True  # the steering-sensor offset as a filter state
+    process_noise_units: str = "per_second"  # Q as a spectral density, or per GNSS step (old files)
+    process_noise_step: float = 0.2  # s: the GNSS interval per-step Q values were tuned for
+    linear_range_check: bool = True  # hold the stiffness where the tire leaves its linear range
+    max_slip_angle: float = 0.05  # rad: beyond it the tire is taken as nonlinear (stiffness held)
+    max_lateral_acceleration: float = 2.0  # m/s^2: likewise
+    change_detection: bool = True  # the surface-change CUSUM on the innovations
+    change_scale: float = 4.0  # innovation variance ratio the surface-change CUSUM tests for
+    change_threshold: float = 12.0  # CUSUM alarm level (log-likelihood ratio)
+    change_inflation: float = 0.09  # stiffness variance added at an alarm, (ln C)^2: 30 % 1-sigma
 
     def __post_init__(self) -> None:
         _check_choice("ekf.discretization", self.discretization, DISCRETIZATIONS)
@@ -67,25 +79,44 @@ class FilterOptions:
             raise ValueError(f"ekf.gate_threshold must be > 0, got {self.gate_threshold}")
         if not self.max_interval > 0.0:
             raise ValueError(f"ekf.max_interval must be > 0, got {self.max_interval}")
+        _check_choice("ekf.process_noise_units", self.process_noise_units, NOISE_UNITS)
+        for key in ("process_noise_step", "max_slip_angle", "max_lateral_acceleration", "change_inflation"):
+            value = getattr(self, key)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"ekf.{key} must be a positive finite number, got {value!r}")
+        if not (math.isfinite(self.change_scale) and self.change_scale > 1.0):
+            raise ValueError(f"ekf.change_scale must be > 1, got {self.change_scale!r}")
+        if not (math.isfinite(self.change_threshold) and self.change_threshold > 0.0):
+            raise ValueError(f"ekf.change_threshold must be > 0, got {self.change_threshold!r}")
 
     @property
     def state_size(self) -> int:
-        """[vy, r, psi, Cf, Cr] for heading, [vy, r, Cf, Cr] for yaw_rate."""
-        return 5 if self.measurement == "heading" else 4
+        """[vy, r, psi, Cf, Cr, b] for heading, [vy, r, Cf, Cr, b] for yaw_rate."""
+        return 6 if self.measurement == "heading" else 5
+
+    @property
+    def noise_rate_scale(self) -> float:
+        """Factor from the configured Q entries to a spectral density (per second)."""
+        return 1.0 if self.process_noise_units == "per_second" else 1.0 / self.process_noise_step
 
 
 @dataclass(frozen=True)
 class NoiseParams:
     """Q, R, the initial state and covariance (paper eqs. 12, 22).
 
-    process_noise: diag Q for vy, r, Cf, Cr (stiffness in the state's units).
+    process_noise: diag Q for vy, r, Cf, Cr as a spectral density (state units squared per
+      second; each GNSS interval dt adds Q dt), or per step (``ekf.process_noise_units``).
     measurement_noise: diag R for vy (m/s)^2 and heading rad^2 (or r (rad/s)^2 in yaw_rate mode).
-    heading_process_noise: Q entry of the heading state (heading mode only), rad^2.
+    heading_process_noise: Q density of the heading state (heading mode only), rad^2/s.
+    steering_offset_process_noise: Q density of the steering offset, rad^2/s.
+    steering_offset_initial_variance: P0 of the steering offset, rad^2 (0 when it is not estimated).
     """
 
-    process_noise: tuple[float, float, float, float] = (1.0e-4, 1.0e-4, 1.0e-6, 1.0e-6)
+    process_noise: tuple[float, float, float, float] = (5.0e-4, 5.0e-4, 5.0e-6, 5.0e-6)
     measurement_noise: tuple[float, float] = (4.0e-4, 1.2e-5)
-    heading_process_noise: float = 1.0e-8
+    heading_process_noise: float = 5.0e-8
+    steering_offset_process_noise: float = 1.0e-8
+    steering_offset_initial_variance: float = 1.2e-3
     initial_stiffness: tuple[float, float] = (1000.0, 1000.0)
     initial_covariance: tuple[float, float, float, float] = (1.0e-2, 1.0e-2, 4.0, 4.0)
     initial_heading_covariance: float = 1.0e-2
@@ -97,6 +128,10 @@ class NoiseParams:
         _check_vector("ekf.initial_covariance", self.initial_covariance, 4, allow_zero=True)
         _check_vector("ekf.heading_process_noise", (self.heading_process_noise,), 1, allow_zero=True)
         _check_vector("ekf.initial_heading_covariance", (self.initial_heading_covariance,), 1, allow_zero=True)
+        _check_vector("ekf.steering_offset_process_noise", (self.steering_offset_process_noise,), 1,
+                      allow_zero=True)
+        _check_vector("ekf.steering_offset_initial_variance", (self.steering_offset_initial_variance,), 1,
+                      allow_zero=True)
 
 
 @dataclass(frozen=True)

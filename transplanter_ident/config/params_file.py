@@ -85,6 +85,20 @@ class SteeringConfig:
 
 
 @dataclass(frozen=True)
+class GnssConfig:
+    """GNSS timing: how the receiver's stamps relate to the motion they describe."""
+
+    delay: float = 0.0  # s: velocity and heading stamped t describe the motion at t - delay
+    pairing_tolerance: float = 0.05  # s: the most a velocity and a heading stamp of one epoch may differ
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.delay) and -1.0 <= self.delay <= 10.0):
+            raise ValueError(f"gnss.delay must be a finite number of seconds in [-1, 10], got {self.delay!r}")
+        if not (math.isfinite(self.pairing_tolerance) and 0.0 < self.pairing_tolerance <= 1.0):
+            raise ValueError(f"gnss.pairing_tolerance must be in (0, 1] s, got {self.pairing_tolerance!r}")
+
+
+@dataclass(frozen=True)
 class EstimatorParams:
     """Everything the parameters file holds; ``extra`` keeps other keys flat (``diagnostics.x``)."""
 
@@ -92,6 +106,7 @@ class EstimatorParams:
     topics: TopicConfig = field(default_factory=TopicConfig)
     frames: FrameConfig = field(default_factory=FrameConfig)
     steering: SteeringConfig = field(default_factory=SteeringConfig)
+    gnss: GnssConfig = field(default_factory=GnssConfig)
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -102,6 +117,7 @@ _SECTIONS: dict[str, tuple[type, ...]] = {
     "topics": (TopicConfig,),
     "frames": (FrameConfig,),
     "steering": (SteeringConfig,),
+    "gnss": (GnssConfig,),
 }
 
 
@@ -194,6 +210,7 @@ def flat_to_params(flat: Mapping[str, Any]) -> EstimatorParams:
         topics=_build(TopicConfig, sections["topics"]),
         frames=_build(FrameConfig, sections["frames"]),
         steering=_build(SteeringConfig, sections["steering"]),
+        gnss=_build(GnssConfig, sections["gnss"]),
         extra=extra,
     )
 
@@ -206,6 +223,7 @@ def params_to_flat(p: EstimatorParams) -> dict[str, Any]:
         "topics": (p.topics,),
         "frames": (p.frames,),
         "steering": (p.steering,),
+        "gnss": (p.gnss,),
     }
     flat: dict[str, Any] = {}
     for namespace, objs in objects.items():

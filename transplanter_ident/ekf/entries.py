@@ -11,56 +11,68 @@ from __future__ import annotations
 from typing import Any, NamedTuple
 
 from transplanter_ident.ekf.kernels import make_kernels
+from transplanter_ident.ekf.layout import (
+    HEADING_STATES,
+    N_EPOCH_COLUMNS,
+    N_MEMO,
+    N_MODEL,
+    N_OUTPUTS,
+    N_SETTINGS,
+    N_VEHICLE,
+    WORK_SIZE,
+    WORK_SLOTS,
+    YAW_RATE_STATES,
+)
 from transplanter_ident.jit import entry_kernel
 
-_predict_yaw_rate, _step_yaw_rate, _run_yaw_rate, _objective_yaw_rate = make_kernels(4)
-_predict_heading, _step_heading, _run_heading, _objective_heading = make_kernels(5)
+_predict_yaw_rate, _step_yaw_rate, _run_yaw_rate, _objective_yaw_rate = make_kernels(heading=False)
+_predict_heading, _step_heading, _run_heading, _objective_heading = make_kernels(heading=True)
 
 
 
 @entry_kernel
-def _predict_4(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):  # noqa: ANN001, ANN202
+def _predict_yaw_rate_entry(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):  # noqa: ANN001, ANN202
     _predict_yaw_rate(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
 
 
 @entry_kernel
-def _predict_5(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):  # noqa: ANN001, ANN202
+def _predict_heading_entry(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):  # noqa: ANN001, ANN202
     _predict_heading(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
 
 
 @entry_kernel
-def _step_4(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,  # noqa: ANN001, ANN202
+def _step_yaw_rate_entry(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,  # noqa: ANN001, ANN202
             steering_rate, vy, psi, yaw_rate, ws, out):
     return _step_yaw_rate(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering, steering_rate,
                           vy, psi, yaw_rate, ws, out)
 
 
 @entry_kernel
-def _step_5(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,  # noqa: ANN001, ANN202
+def _step_heading_entry(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,  # noqa: ANN001, ANN202
             steering_rate, vy, psi, yaw_rate, ws, out):
     return _step_heading(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering, steering_rate,
                          vy, psi, yaw_rate, ws, out)
 
 
 @entry_kernel
-def _run_4(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs):  # noqa: ANN001, ANN202
+def _run_yaw_rate_entry(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs):  # noqa: ANN001, ANN202
     _run_yaw_rate(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs)
 
 
 @entry_kernel
-def _run_5(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs):  # noqa: ANN001, ANN202
+def _run_heading_entry(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs):  # noqa: ANN001, ANN202
     _run_heading(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs)
 
 
 @entry_kernel
-def objective_4(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind):  # noqa: ANN001, ANN201
-    """objective_kernel for the 4-state (yaw_rate) filter; callable from compiled code."""
+def objective_yaw_rate(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind):  # noqa: ANN001, ANN201
+    """objective_kernel for the yaw_rate filter; callable from compiled code."""
     return _objective_yaw_rate(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind)
 
 
 @entry_kernel
-def objective_5(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind):  # noqa: ANN001, ANN201
-    """objective_kernel for the 5-state (heading) filter; callable from compiled code."""
+def objective_heading(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind):  # noqa: ANN001, ANN201
+    """objective_kernel for the heading filter; callable from compiled code."""
     return _objective_heading(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind)
 
 
@@ -73,8 +85,34 @@ class Kernels(NamedTuple):
     objective: Any
 
 
-#: by state size: 5 = [vy, r, psi, Cf, Cr] (heading), 4 = [vy, r, Cf, Cr] (yaw_rate)
-KERNELS = {4: Kernels(_predict_4, _step_4, _run_4, objective_4), 5: Kernels(_predict_5, _step_5, _run_5, objective_5)}
+#: by state size: HEADING_STATES = [vy, r, psi, th_f, th_r, b], YAW_RATE_STATES = [vy, r, th_f, th_r, b]
+KERNELS = {
+    YAW_RATE_STATES: Kernels(_predict_yaw_rate_entry, _step_yaw_rate_entry, _run_yaw_rate_entry, objective_yaw_rate),
+    HEADING_STATES: Kernels(_predict_heading_entry, _step_heading_entry, _run_heading_entry, objective_heading),
+}
+
+
+def kernels_for(x, p=None, model=None, memo=None, vehicle=None, settings=None, q=None,  # noqa: ANN001, ANN201, PLR0913
+                r_noise=None, ws=None, out=None, epochs=None, outputs=None):
+    """The kernels for x's size, after checking every array's shape.
+
+    The compiled code does not bounds-check: a wrong size would corrupt memory instead of raising.
+    """
+    n = x.shape[0] if x.ndim == 1 else -1
+    if n not in KERNELS:
+        raise ValueError(f"state vector of shape {x.shape}: expected ({HEADING_STATES},) or ({YAW_RATE_STATES},)")
+    expected = {"p": (p, (n, n)), "model": (model, (N_MODEL,)), "memo": (memo, (N_MEMO,)),
+                "vehicle": (vehicle, (N_VEHICLE,)), "settings": (settings, (N_SETTINGS,)), "q": (q, (n,)),
+                "r_noise": (r_noise, (2,)), "ws": (ws, (WORK_SLOTS, WORK_SIZE, WORK_SIZE)),
+                "out": (out, (N_OUTPUTS,))}
+    for name, (array, shape) in expected.items():
+        if array is not None and array.shape != shape:
+            raise ValueError(f"{name} has shape {array.shape}, expected {shape}")
+    if epochs is not None and (epochs.ndim != 2 or epochs.shape[1] != N_EPOCH_COLUMNS):
+        raise ValueError(f"epochs has shape {epochs.shape}, expected (N, {N_EPOCH_COLUMNS})")
+    if outputs is not None and outputs.shape != (epochs.shape[0], N_OUTPUTS):
+        raise ValueError(f"outputs has shape {outputs.shape}, expected ({epochs.shape[0]}, {N_OUTPUTS})")
+    return KERNELS[n]
 
 
 def predict(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):  # noqa: ANN001, ANN201
@@ -83,34 +121,53 @@ def predict(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
     ``steering`` is the interval mean and ``steering_rate`` its slope: ``exact`` drives the ramp
     that starts at mean - rate dt / 2, ``euler`` holds the mean. ws: model.work_buffer().
     """
-    KERNELS[x.shape[0]].predict(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
+    kernels = kernels_for(x, model=model, vehicle=vehicle, settings=settings, ws=ws)
+    kernels.predict(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
 
 
 def ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,  # noqa: ANN001, ANN201
              steering_rate, vy, psi, yaw_rate, ws, out):
-    """Process one epoch in place; return the StepStatus code. ``out`` receives one output row.
+    """Process one epoch in place; return the StepStatus. ``out`` receives one output row.
 
-    x (n,), p (n, n): filter state and covariance; model (3,): open-loop model [vy, r, psi];
-    memo (3,): [t_prev, initialised, consecutive gated]; q (n,), r_noise (2,): diag Q and R;
-    ws: model.work_buffer(). ``speed`` and ``steering`` are means over the interval that ends
-    at ``t``, ``steering_rate`` the slope of the steering over it; ``yaw_rate`` is the
-    interval-mean yaw rate from heading increments.
+    Parameters (n = HEADING_STATES or YAW_RATE_STATES; every array float64, updated in place
+    where marked *):
+
+    x : (n,)*           state [vy, r, (psi,) theta_f, theta_r, b], layout.X_*
+    p : (n, n)*         state covariance P
+    model : (3,)*       open-loop model output [vy, r, psi] (paper Figs. 6-7)
+    memo : (N_MEMO,)*   [t_prev, initialised, consecutive gated, CUSUM], layout.M_*
+    vehicle : (4,)      [mass, lf, lr, iz], model.vehicle_array
+    settings : (N_SETTINGS,)  options as numbers, layout.S_*
+    q : (n,)            diag Q as a spectral density (per second; each interval adds q dt)
+    r_noise : (2,)      diag R: vy (m/s)^2, then psi rad^2 (or r (rad/s)^2)
+    t : float           epoch time, s (interval end)
+    speed : float       interval-mean vx at the CG, m/s
+    steering : float    interval-mean steering sensor angle, rad (the wheel angle is this - b)
+    steering_rate : float  least-squares slope of the steering over the interval, rad/s
+    vy : float          lateral velocity at the antenna, body axes, m/s (h: vy + antenna_x r)
+    psi : float         unwrapped ENU heading at t, rad
+    yaw_rate : float    interval-mean r from heading increments, rad/s
+    ws : (WORK_SLOTS, WORK_SIZE, WORK_SIZE)*  scratch, model.work_buffer()
+    out : (N_OUTPUTS,)* one output row, layout.O_*
     """
-    return KERNELS[x.shape[0]].step(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,
-                                    steering_rate, vy, psi, yaw_rate, ws, out)
+    kernels = kernels_for(x, p, model, memo, vehicle, settings, q, r_noise, ws, out)
+    return kernels.step(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering, steering_rate, vy,
+                        psi, yaw_rate, ws, out)
 
 
 def run_kernel(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs):  # noqa: ANN001, ANN201
     """ekf_step over every row of ``epochs`` (columns E_*); one output row per epoch."""
-    KERNELS[x.shape[0]].run(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs)
+    kernels = kernels_for(x, p, model, memo, vehicle, settings, q, r_noise, epochs=epochs, outputs=outputs)
+    kernels.run(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs)
 
 
 def objective_kernel(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind):  # noqa: ANN001, ANN201
     """Tuning objective over a sequence: eq. 21 mean |innovation| (MAE) or Gaussian NLL.
 
-    Only epochs with a predicted measurement (UPDATED or GATED) count. A diverging filter, or
-    one that never predicts, scores DIVERGENCE_PENALTY.
+    Only epochs with a predicted measurement (UPDATED, GATED, NONLINEAR) count. A diverging
+    filter, or one that never predicts, scores DIVERGENCE_PENALTY.
     """
-    return KERNELS[x.shape[0]].objective(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind)
+    kernels = kernels_for(x, p, model, memo, vehicle, settings, q, r_noise, epochs=epochs)
+    return kernels.objective(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind)
 
 

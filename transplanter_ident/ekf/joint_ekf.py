@@ -14,9 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from transplanter_ident.config.parameters import EstimatorConfig, NoiseParams
+from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams
 from transplanter_ident.ekf.entries import ekf_step, objective_kernel, run_kernel
 from transplanter_ident.ekf.layout import (
+    EPOCH_COLUMNS,
     EULER,
     EXACT,
     MAE,
@@ -27,11 +28,15 @@ from transplanter_ident.ekf.layout import (
     NLL,
     O_CF,
     O_CF_STD,
+    O_CHANGE,
+    O_CORRELATION,
     O_CR,
     O_CR_STD,
     O_E0,
     O_E1,
     O_NIS,
+    O_OFFSET,
+    O_OFFSET_STD,
     O_R,
     O_R_MODEL,
     O_S00,
@@ -40,18 +45,31 @@ from transplanter_ident.ekf.layout import (
     O_STATUS,
     O_VY,
     O_VY_MODEL,
+    S_ANTENNA_X,
+    S_CHANGE_DETECTION,
+    S_CHANGE_INFLATION,
+    S_CUSUM_CAP,
+    S_CUSUM_SCALE,
+    S_CUSUM_THRESHOLD,
     S_GATE,
     S_HEADING,
     S_HIGH,
+    S_LINEAR_RANGE,
     S_LOG,
     S_LOW,
     S_MAX_GATED,
     S_MAX_INTERVAL,
+    S_MAX_LAT_ACC,
+    S_MAX_SLIP,
     S_METHOD,
     S_MIN_SPEED,
     S_P0_PSI,
     S_P0_R,
     S_P0_VY,
+    X_OFFSET,
+    X_PSI,
+    X_THETA_F,
+    X_THETA_R,
     StepStatus,
 )
 from transplanter_ident.ekf.model import vehicle_array, work_buffer
@@ -75,6 +93,11 @@ class Estimate:
     innovation: tuple[float, float]
     innovation_covariance: tuple[float, float, float]  # S00, S01, S11
     normalized_innovation_squared: float
+    steering_offset: float = 0.0  # rad, wheel = sensor - offset
+    steering_offset_std: float = 0.0
+    stiffness_correlation: float = 0.0  # of the two stiffness states (ln Cf, ln Cr in log mode)
+    change_detected: bool = False  # the surface-change test fired at this epoch
+    row: tuple[float, ...] = ()  # the whole kernel output row (layout.O_*)
 
     @classmethod
     def from_row(cls, t: float, row: np.ndarray) -> Estimate:
@@ -93,6 +116,11 @@ class Estimate:
             innovation=(float(row[O_E0]), float(row[O_E1])),
             innovation_covariance=(float(row[O_S00]), float(row[O_S01]), float(row[O_S11])),
             normalized_innovation_squared=float(row[O_NIS]),
+            steering_offset=float(row[O_OFFSET]),
+            steering_offset_std=float(row[O_OFFSET_STD]),
+            stiffness_correlation=float(row[O_CORRELATION]),
+            change_detected=bool(row[O_CHANGE] > 0.5),
+            row=tuple(float(v) for v in row),
         )
 
 
@@ -127,10 +155,20 @@ class FilterArrays:
         settings[S_P0_VY] = noise.initial_covariance[0]
         settings[S_P0_R] = noise.initial_covariance[1]
         settings[S_P0_PSI] = noise.initial_heading_covariance
-        q, p0 = _state_diagonals(noise, heading)
+        settings[S_ANTENNA_X] = config.vehicle.antenna_x
+        settings[S_MAX_SLIP] = options.max_slip_angle
+        settings[S_MAX_LAT_ACC] = options.max_lateral_acceleration
+        settings[S_CUSUM_SCALE] = options.change_scale
+        settings[S_CUSUM_THRESHOLD] = options.change_threshold
+        settings[S_CUSUM_CAP] = 0.5 * options.change_threshold  # one outlier alone never raises an alarm
+        settings[S_CHANGE_INFLATION] = options.change_inflation
+        settings[S_LINEAR_RANGE] = 1.0 if options.linear_range_check else 0.0
+        settings[S_CHANGE_DETECTION] = 1.0 if options.change_detection else 0.0
+        q, p0 = _state_diagonals(noise, options)
         x0 = np.zeros(len(q))
-        x0[-2] = to_state(noise.initial_stiffness[0])
-        x0[-1] = to_state(noise.initial_stiffness[1])
+        x0[X_THETA_F] = to_state(noise.initial_stiffness[0])
+        x0[X_THETA_R] = to_state(noise.initial_stiffness[1])
+        x0[X_OFFSET] = config.vehicle.steering_offset
         return cls(
             vehicle=vehicle_array(config.vehicle),
             settings=settings,
@@ -141,12 +179,17 @@ class FilterArrays:
         )
 
 
-def _state_diagonals(noise: NoiseParams, heading: bool) -> tuple[np.ndarray, np.ndarray]:
+def _state_diagonals(noise: NoiseParams, options: FilterOptions) -> tuple[np.ndarray, np.ndarray]:
+    """Diag Q (a density, per second) and diag P0 in the state's order; a fixed offset has Q = P0 = 0."""
     q, p0 = list(noise.process_noise), list(noise.initial_covariance)
-    if heading:
-        q.insert(2, noise.heading_process_noise)
-        p0.insert(2, noise.initial_heading_covariance)
-    return np.array(q, dtype=np.float64), np.array(p0, dtype=np.float64)
+    if options.measurement == "heading":
+        q.insert(X_PSI, noise.heading_process_noise)
+        p0.insert(X_PSI, noise.initial_heading_covariance)
+    estimated = options.estimate_steering_offset
+    q.append(noise.steering_offset_process_noise if estimated else 0.0)
+    p0.append(noise.steering_offset_initial_variance if estimated else 0.0)
+    scale = options.noise_rate_scale
+    return np.array(q, dtype=np.float64) * scale, np.array(p0, dtype=np.float64)
 
 
 class JointEKF:
@@ -182,15 +225,20 @@ class JointEKF:
         a = self._arrays
         ekf_step(self.state, self.covariance, self._model, self._memo, a.vehicle, a.settings,
                  a.process_noise, a.measurement_noise, epoch.t, epoch.speed, epoch.steering,
-                 epoch.steering_rate, epoch.lateral_velocity, epoch.heading, epoch.yaw_rate, self._ws, self._out)
+                 epoch.steering_rate, epoch.antenna_lateral_velocity, epoch.heading, epoch.yaw_rate, self._ws, self._out)
         return Estimate.from_row(epoch.t, self._out)
+
+
+def kernel_input(epochs: EpochArrays) -> np.ndarray:
+    """The (N, N_EPOCH_COLUMNS) kernel input, columns in layout.EPOCH_COLUMNS order (E_*)."""
+    return np.ascontiguousarray(np.column_stack([epochs.column(name) for name in EPOCH_COLUMNS]))
 
 
 def run_sequence(config: EstimatorConfig, epochs: EpochArrays) -> np.ndarray:
     """Filter a whole epoch sequence; returns the (N, N_OUTPUTS) output rows."""
     a = FilterArrays.from_config(config)
     outputs = np.zeros((len(epochs), N_OUTPUTS))
-    run_kernel(epochs.kernel_input(), a.initial_state.copy(), a.initial_covariance.copy(), np.zeros(N_MODEL),
+    run_kernel(kernel_input(epochs), a.initial_state.copy(), a.initial_covariance.copy(), np.zeros(N_MODEL),
                np.zeros(N_MEMO), a.vehicle, a.settings, a.process_noise, a.measurement_noise, outputs)
     return outputs
 
@@ -199,6 +247,6 @@ def sequence_objective(config: EstimatorConfig, epochs: EpochArrays, kind: str =
     """Tuning objective (``mae``: eq. 21, ``nll``: innovation negative log-likelihood)."""
     a = FilterArrays.from_config(config)
     code = MAE if kind == "mae" else NLL
-    return float(objective_kernel(epochs.kernel_input(), a.initial_state.copy(), a.initial_covariance.copy(),
+    return float(objective_kernel(kernel_input(epochs), a.initial_state.copy(), a.initial_covariance.copy(),
                                   np.zeros(N_MODEL), np.zeros(N_MEMO), a.vehicle, a.settings, a.process_noise,
                                   a.measurement_noise, code))

@@ -1,10 +1,21 @@
-"""Joint-state EKF over the motion states and the cornering stiffness (paper eqs. 9-14, 21).
+"""Joint-state EKF over the motion states, the cornering stiffness and the steering offset (paper eqs. 9-14, 21).
 
-State: [vy, r, psi, theta_f, theta_r] with z = [vy, psi] (``heading``, the default) or
-[vy, r, theta_f, theta_r] with z = [vy, r] (``yaw_rate``, the paper's eq. 11). theta is ln C
-(``log``) or C (``linear``). The prediction uses :func:`model.discretize` (eq. 10 or exact
-ZOH, Jacobian eq. 13 with the A23 erratum fixed); the update is eq. 12 in Joseph form with a
-Mahalanobis innovation gate. The stiffness is a random walk with process noise Q (eq. 22).
+State: [vy, r, psi, theta_f, theta_r, b] with z = [vy_antenna, psi] (``heading``, the default) or
+[vy, r, theta_f, theta_r, b] with z = [vy_antenna, r] (``yaw_rate``, the paper's eq. 11). theta is
+ln C (``log``) or C (``linear``); b is the steering-sensor offset (wheel angle = sensor - b). The
+prediction uses :func:`model.discretize` (eq. 10 or exact ZOH, Jacobian eq. 13 with the A23
+erratum fixed) driven by the steering ramp minus b. The measurement holds the lever arm,
+h(x) = [vy + antenna_x r, psi], and the update is eq. 12 in Joseph form with a Mahalanobis gate.
+
+Beyond the paper (DESIGN.md section 7):
+
+* Q is a spectral density: each interval adds Q dt, so one parameter file fits any GNSS rate;
+* theta and b are random walks; a CUSUM test on the normalised innovation squared (a variance
+  scale change of the innovations) inflates the stiffness variance when the surface changes;
+* outside the linear tire range (predicted slip angle or lateral acceleration over its limit)
+  the update leaves the stiffness and the offset alone (a Schmidt update of the motion states);
+* a measurement gated ``max_gated`` times in a row re-initialises the motion states; it never
+  forces a stiffness update.
 
 Alongside the filter runs the *model output* of the paper's Figs. 6-7: the bicycle model
 driven by the measured steering and speed with the stiffness identified so far, open loop
@@ -35,31 +46,53 @@ from transplanter_ident.ekf.layout import (
     G_HP1,
     G_K0,
     G_K1,
+    HEADING_STATES,
+    M_CUSUM,
     M_GATED,
     M_INITIALISED,
     M_T_PREV,
     MAE,
     N_MODEL,
+    N_MOTION_HEADING,
+    N_MOTION_YAW_RATE,
     N_OUTPUTS,
     O_CF,
     O_CF_STD,
+    O_CHANGE,
+    O_CORRELATION,
+    O_CUSUM,
+    O_DT,
     O_E0,
     O_E1,
+    O_LAT_ACC,
     O_NIS,
+    O_OFFSET,
+    O_OFFSET_STD,
     O_R,
     O_R_MODEL,
     O_S00,
     O_S01,
     O_S11,
+    O_SLIP_F,
+    O_SLIP_R,
     O_STATUS,
     O_VY,
     O_VY_MODEL,
+    S_ANTENNA_X,
+    S_CHANGE_DETECTION,
+    S_CHANGE_INFLATION,
+    S_CUSUM_CAP,
+    S_CUSUM_SCALE,
+    S_CUSUM_THRESHOLD,
     S_GATE,
     S_HIGH,
+    S_LINEAR_RANGE,
     S_LOG,
     S_LOW,
     S_MAX_GATED,
     S_MAX_INTERVAL,
+    S_MAX_LAT_ACC,
+    S_MAX_SLIP,
     S_METHOD,
     S_MIN_SPEED,
     S_P0_PSI,
@@ -69,6 +102,8 @@ from transplanter_ident.ekf.layout import (
     V_BACKUP_X,
     V_NEW_MODEL,
     V_NEW_X,
+    VEH_LF,
+    VEH_LR,
     W_BACKUP_P,
     W_DE_F,
     W_DE_R,
@@ -82,12 +117,17 @@ from transplanter_ident.ekf.layout import (
     X_PSI,
     X_R,
     X_VY,
+    YAW_RATE_STATES,
     Z_SECOND,
     Z_VY,
     StepStatus,
 )
 from transplanter_ident.ekf.model import discretize_heading, discretize_yaw_rate
+from transplanter_ident.epochs.frames import wrap_angle
 from transplanter_ident.jit import inline_kernel, sized_kernel
+
+#: a state variance beyond this is divergence (ln C variance 1e12 means nothing is known)
+MAX_VARIANCE = 1.0e12
 
 
 @inline_kernel
@@ -95,26 +135,22 @@ def _finite(value):
     return not (math.isnan(value) or math.isinf(value))
 
 
-@inline_kernel
-def _wrap(angle):
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+def make_kernels(heading):
+    """Compile predict/step/run/objective for one measurement mode (sizes become compile-time constants).
 
-
-def make_kernels(n):
-    """Compile predict/update/step for n states (5: heading mode, 4: yaw_rate mode).
-
-    The sizes are compile-time constants, so the small loops unroll; all scratch lives in one
-    work buffer indexed by slot (no per-step array views or allocations).
+    ``heading``: n = 6 states, z = [vy_antenna, psi]; else n = 5, z = [vy_antenna, r]. The small
+    loops unroll; all scratch lives in one work buffer indexed by slot (no per-step allocation).
     """
-    nd = n - 2
-    heading = n == 5
-    h1 = 2 if heading else 1  # second measured state: psi or r
-    nf, nr = n - 2, n - 1
+    n = HEADING_STATES if heading else YAW_RATE_STATES
+    nd = N_MOTION_HEADING if heading else N_MOTION_YAW_RATE  # motion states
+    nf, nr, nb = nd, nd + 1, nd + 2  # theta_f, theta_r, steering offset
+    h1 = X_PSI if heading else X_R  # second measured state
     discretize_n = discretize_heading if heading else discretize_yaw_rate
 
     @inline_kernel
-    def reset_motion(x, p, model, settings, vy, psi, yaw_rate):
-        """Take the motion states from the measurement; keep the stiffness and its variance."""
+    def reset_motion(x, p, model, settings, vy_antenna, psi, yaw_rate):
+        """Take the motion states from the measurement; keep the parameter states and their covariance."""
+        vy = vy_antenna - settings[S_ANTENNA_X] * yaw_rate
         x[X_VY] = vy
         x[X_R] = yaw_rate
         model[X_VY] = vy
@@ -132,36 +168,44 @@ def make_kernels(n):
             p[X_PSI, X_PSI] = settings[S_P0_PSI]
 
     @inline_kernel
+    def stiffness(x, settings, k):
+        """C of theta_f (k = 0) or theta_r (k = 1), and dC/dtheta."""
+        if settings[S_LOG] > 0.5:
+            c = math.exp(x[nf + k])
+            return c, c
+        return x[nf + k], 1.0
+
+    @inline_kernel
     def write_outputs(x, p, settings, status, r_model, vy_model, out):
         out[O_STATUS] = status.value
         out[O_VY] = x[X_VY]
         out[O_R] = x[X_R]
         for k in range(2):  # front, rear
-            theta = x[nf + k]
-            var = max(p[nf + k, nf + k], 0.0)
-            if settings[S_LOG] > 0.5:
-                c = math.exp(theta)
-                out[O_CF + k] = c
-                out[O_CF_STD + k] = c * math.sqrt(var)
-            else:
-                out[O_CF + k] = theta
-                out[O_CF_STD + k] = math.sqrt(var)
+            c, dc = stiffness(x, settings, k)
+            out[O_CF + k] = c
+            out[O_CF_STD + k] = dc * math.sqrt(max(p[nf + k, nf + k], 0.0))
+        out[O_OFFSET] = x[nb]
+        out[O_OFFSET_STD] = math.sqrt(max(p[nb, nb], 0.0))
+        denominator = math.sqrt(max(p[nf, nf], 0.0) * max(p[nr, nr], 0.0))
+        out[O_CORRELATION] = p[nf, nr] / denominator if denominator > 0.0 else 0.0
         out[O_VY_MODEL] = vy_model
         out[O_R_MODEL] = r_model
 
     @inline_kernel
     def predict_n(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):
-        """X <- f(x, u), model <- f(model, u); F = df/dx into ws[W_F]."""
-        if settings[S_LOG] > 0.5:
-            cf, cr = math.exp(x[nf]), math.exp(x[nr])
-            dcf, dcr = cf, cr
-        else:
-            cf, cr = x[nf], x[nr]
-            dcf, dcr = 1.0, 1.0
+        """X <- f(x, u), model <- f(model, u); F = df/dx into ws[W_F].
+
+        The wheel angle is the sensor's minus the offset b: a ramp from (mean - b) - rate dt / 2
+        (``exact``) or the held mean - b (``euler``), so df/db = -E[:, delta].
+        """
+        cf, dcf = stiffness(x, settings, 0)
+        cr, dcr = stiffness(x, settings, 1)
         method = int(settings[S_METHOD])
         discretize_n(cf, cr, dcf, dcr, speed, dt, vehicle, method, ws)
-        level = steering if method == EULER else steering - 0.5 * dt * steering_rate
-        for i in range(nd, n):  # the stiffness rows; the motion rows are all written below
+        level = steering - x[nb]
+        if method != EULER:
+            level -= 0.5 * dt * steering_rate
+        for i in range(nd, n):  # the parameter rows (random walks); the motion rows are written below
             for j in range(n):
                 ws[W_F, i, j] = 1.0 if i == j else 0.0
         for i in range(nd):
@@ -177,6 +221,7 @@ def make_kernels(n):
                 ws[W_F, i, j] = ws[W_E, i, j]
             ws[W_F, i, nf] = acc_f
             ws[W_F, i, nr] = acc_r
+            ws[W_F, i, nb] = -ws[W_E, i, nd]
             ws[W_VEC, V_NEW_X, i] = acc
             ws[W_VEC, V_NEW_MODEL, i] = acc_m
         for i in range(nd):
@@ -184,8 +229,8 @@ def make_kernels(n):
             model[i] = ws[W_VEC, V_NEW_MODEL, i]
 
     @inline_kernel
-    def propagate_covariance(p, q, ws):
-        """P = F P F^T + Q, with F = [[F_motion, F_stiffness], [0, I]] (the stiffness is a random walk)."""
+    def propagate_covariance(p, q, dt, ws):
+        """P = F P F^T + Q dt, F = [[F_motion], [0, I]]: the parameter states are random walks, Q a density."""
         for i in range(nd):
             for j in range(n):
                 acc = 0.0
@@ -203,20 +248,23 @@ def make_kernels(n):
                 p[i, j] = ws[W_TMP, i, j]
                 p[j, i] = ws[W_TMP, i, j]
         for i in range(n):
-            p[i, i] += q[i]
+            p[i, i] += q[i] * dt
 
     @inline_kernel
-    def joseph_update(x, p, r_noise, e0, e1, s00, s01, s11, det, ws):
-        """Update: x += K e; P = (I - K H) P (I - K H)^T + K R K^T, H selecting states 0 and h1.
+    def joseph_update(x, p, e0, e1, s00, s01, s11, det, antenna_x, motion_only, ws):
+        """X += K e; P = (I - K H) P (I - K H)^T + K R K^T with H = [[1, antenna_x, 0...], e_h1].
 
-        The Joseph form is evaluated expanded, P - K HP - (K HP)^T + K S K^T with S = H P H^T + R:
-        the same function of K (so still second-order insensitive to gain errors), in O(n^2).
+        Evaluated expanded, P - K HP - (K HP)^T + K S K^T with S = H P H^T + R: the same function of
+        K (so valid for any gain), in O(n^2). ``motion_only`` zeroes the parameter rows of K (a
+        Schmidt update: the stiffness and offset keep their estimate and take the right covariance).
         """
         i00, i01, i11 = s11 / det, -s01 / det, s00 / det
         for i in range(n):
-            hp0, hp1 = p[X_VY, i], p[h1, i]
+            hp0, hp1 = p[X_VY, i] + antenna_x * p[X_R, i], p[h1, i]
             k0 = hp0 * i00 + hp1 * i01
             k1 = hp0 * i01 + hp1 * i11
+            if motion_only and i >= nd:
+                k0, k1 = 0.0, 0.0
             ws[W_GAIN, G_K0, i] = k0
             ws[W_GAIN, G_K1, i] = k1
             ws[W_GAIN, G_HP0, i] = hp0
@@ -234,30 +282,88 @@ def make_kernels(n):
                 p[j, i] = acc
 
     @inline_kernel
+    def beyond_linear_range(vehicle, settings, speed, steering, offset, vy, yaw_rate, out):
+        """Whether the measured slip angles or lateral acceleration leave the linear tire's range.
+
+        From the measurement (vy at the CG, the interval-mean r), not the prediction: a wrong
+        stiffness must not make the filter believe the tires are saturated.
+        """
+        lf, lr = vehicle[VEH_LF], vehicle[VEH_LR]
+        slip_f = steering - offset - (vy + lf * yaw_rate) / speed
+        slip_r = (lr * yaw_rate - vy) / speed
+        lateral_acceleration = speed * yaw_rate
+        out[O_SLIP_F] = slip_f
+        out[O_SLIP_R] = slip_r
+        out[O_LAT_ACC] = lateral_acceleration
+        if settings[S_LINEAR_RANGE] < 0.5:
+            return False
+        limit = settings[S_MAX_SLIP]
+        return abs(slip_f) > limit or abs(slip_r) > limit or abs(lateral_acceleration) > settings[S_MAX_LAT_ACC]
+
+    @inline_kernel
+    def detect_change(x, p, memo, settings, nis, out):
+        """CUSUM of the log-likelihood ratio of a variance scale s of the innovations (chi^2_2 NIS).
+
+        l = -ln s + NIS (1 - 1/s) / 2, capped; an alarm at g > threshold raises the stiffness
+        variance to at least the inflation level (a surface change; never beyond it, so repeated
+        alarms cannot make it grow without bound) and restarts the sum.
+        """
+        scale = settings[S_CUSUM_SCALE]
+        llr = min(-math.log(scale) + 0.5 * nis * (1.0 - 1.0 / scale), settings[S_CUSUM_CAP])
+        g = max(0.0, memo[M_CUSUM] + llr)
+        if g > settings[S_CUSUM_THRESHOLD]:
+            for k in range(2):
+                c, dc = stiffness(x, settings, k)
+                p[nf + k, nf + k] = max(p[nf + k, nf + k], settings[S_CHANGE_INFLATION] * dc * dc)
+            out[O_CHANGE] = 1.0
+            g = 0.0
+        memo[M_CUSUM] = g
+        out[O_CUSUM] = g
+
+    @inline_kernel
     def healthy(x, p, r_model, vy_model, nis):
+        """Finite state and outputs, and a covariance below MAX_VARIANCE (else the step is rolled back)."""
         for i in range(n):
-            if not _finite(x[i]):
+            if not _finite(x[i]) or not p[i, i] <= MAX_VARIANCE:
                 return False
             for j in range(n):
                 if not _finite(p[i, j]):
                     return False
         return _finite(r_model) and _finite(vy_model) and _finite(nis)
 
-    # Compiled without numba's runtime (NRT): the step allocates nothing, and with the NRT every
-    # call increfs and decrefs its ten array arguments with atomic instructions, which took over half of
-    # the euler step (numba issues #2345, #2350 give _nrt=False as the remedy).
+    @inline_kernel
+    def restart_motion(x, p, model, memo, settings, status, t, vy_antenna, psi, yaw_rate, out):
+        reset_motion(x, p, model, settings, vy_antenna, psi, yaw_rate)
+        memo[M_T_PREV] = t
+        memo[M_INITIALISED] = 1.0
+        memo[M_GATED] = 0.0
+        write_outputs(x, p, settings, status, yaw_rate, x[X_VY], out)
+        return status
+
     @sized_kernel(runtime=False)
     def step_n(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,
-               steering_rate, vy, psi, yaw_rate, ws, out):
+               steering_rate, vy_antenna, psi, yaw_rate, ws, out):
+        """One epoch, in place; returns the StepStatus (see :func:`.entries.ekf_step` for the shapes).
+
+        1. Reject a non-finite epoch or a stamp not after the previous one (nothing changes).
+        2. Initialise, or re-initialise after a gap, at low speed or reversing (motion from z).
+        3. Predict x and the open-loop model over dt (eq. 12), P = F P F^T + Q dt.
+        4. Innovation, S and NIS with the lever arm in h(x); the CUSUM change test.
+        5. Gate; after max_gated gated epochs in a row, re-initialise the motion states.
+        6. Joseph update (motion only outside the linear tire range); clamp the stiffness.
+        7. Roll back if anything became non-finite.
+        """
         for k in range(N_OUTPUTS):
             out[k] = 0.0
+        # 1.
         if not (_finite(t) and _finite(speed) and _finite(steering) and _finite(steering_rate)
-                and _finite(vy) and _finite(psi) and _finite(yaw_rate)):
+                and _finite(vy_antenna) and _finite(psi) and _finite(yaw_rate)):
             write_outputs(x, p, settings, StepStatus.REJECTED_INVALID, model[X_R], model[X_VY], out)
             return StepStatus.REJECTED_INVALID
         if memo[M_INITIALISED] > 0.5 and t <= memo[M_T_PREV]:
             write_outputs(x, p, settings, StepStatus.REJECTED_STAMP, model[X_R], model[X_VY], out)
             return StepStatus.REJECTED_STAMP
+        # 2.
         status = StepStatus.UPDATED
         if memo[M_INITIALISED] < 0.5:
             status = StepStatus.INITIALISED
@@ -268,35 +374,36 @@ def make_kernels(n):
         elif speed < settings[S_MIN_SPEED]:
             status = StepStatus.LOW_SPEED
         if status != StepStatus.UPDATED:
-            reset_motion(x, p, model, settings, vy, psi, yaw_rate)
-            memo[M_T_PREV] = t
-            memo[M_INITIALISED] = 1.0
-            memo[M_GATED] = 0.0
-            write_outputs(x, p, settings, status, yaw_rate, vy, out)
-            return status
+            return restart_motion(x, p, model, memo, settings, status, t, vy_antenna, psi, yaw_rate, out)
 
         dt = t - memo[M_T_PREV]
+        out[O_DT] = dt
         for i in range(n):
             ws[W_VEC, V_BACKUP_X, i] = x[i]
             for j in range(n):
                 ws[W_BACKUP_P, i, j] = p[i, j]
         for i in range(N_MODEL):
             ws[W_VEC, V_BACKUP_MODEL, i] = model[i]
+        cusum_before = memo[M_CUSUM]
 
-        # prediction, eq. 12 first two lines
+        # 3.
         psi_model_before = model[X_PSI]
         predict_n(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
         r_model = (model[X_PSI] - psi_model_before) / dt if heading else model[X_R]
         vy_model = model[X_VY]
-        propagate_covariance(p, q, ws)
+        propagate_covariance(p, q, dt, ws)
 
-        # innovation (eq. 21 uses its absolute value) and the gate
-        e0 = vy - x[X_VY]
-        e1 = _wrap(psi - x[X_PSI]) if heading else yaw_rate - x[X_R]
-        s00 = p[X_VY, X_VY] + r_noise[Z_VY]
-        s01 = p[X_VY, h1]
+        # 4.
+        antenna_x = settings[S_ANTENNA_X]
+        e0 = vy_antenna - (x[X_VY] + antenna_x * x[X_R])
+        e1 = wrap_angle(psi - x[X_PSI]) if heading else yaw_rate - x[X_R]
+        s00 = (p[X_VY, X_VY] + 2.0 * antenna_x * p[X_VY, X_R] + antenna_x * antenna_x * p[X_R, X_R]
+               + r_noise[Z_VY])
+        s01 = p[X_VY, h1] + antenna_x * p[X_R, h1]
         s11 = p[h1, h1] + r_noise[Z_SECOND]
         det = s00 * s11 - s01 * s01
+        if not det > 0.0:  # S lost positive definiteness (or is NaN): treat as divergence
+            det = math.nan
         nis = (e0 * e0 * s11 - 2.0 * e0 * e1 * s01 + e1 * e1 * s00) / det
         out[O_E0] = e0
         out[O_E1] = e1
@@ -304,23 +411,37 @@ def make_kernels(n):
         out[O_S01] = s01
         out[O_S11] = s11
         out[O_NIS] = nis
-        if nis > settings[S_GATE] and memo[M_GATED] < settings[S_MAX_GATED]:
+        vy_cg = vy_antenna - antenna_x * yaw_rate
+        nonlinear = beyond_linear_range(vehicle, settings, speed, steering, x[nb], vy_cg, yaw_rate, out)
+
+        # 5.
+        if nis > settings[S_GATE] and _finite(nis):
+            if memo[M_GATED] + 1.0 >= settings[S_MAX_GATED]:
+                return restart_motion(x, p, model, memo, settings, StepStatus.REINITIALISED, t, vy_antenna,
+                                      psi, yaw_rate, out)
             status = StepStatus.GATED
             memo[M_GATED] += 1.0
         else:
+            # 6.
             memo[M_GATED] = 0.0
-            joseph_update(x, p, r_noise, e0, e1, s00, s01, s11, det, ws)
+            if nonlinear:
+                status = StepStatus.NONLINEAR
+            joseph_update(x, p, e0, e1, s00, s01, s11, det, antenna_x, nonlinear, ws)
+        if not nonlinear and settings[S_CHANGE_DETECTION] > 0.5:
+            detect_change(x, p, memo, settings, nis, out)
         low, high = settings[S_LOW], settings[S_HIGH]
         x[nf] = min(max(x[nf], low), high)
         x[nr] = min(max(x[nr], low), high)
 
-        if not healthy(x, p, r_model, vy_model, nis):  # roll back
+        # 7.
+        if not healthy(x, p, r_model, vy_model, nis):
             for i in range(n):
                 x[i] = ws[W_VEC, V_BACKUP_X, i]
                 for j in range(n):
                     p[i, j] = ws[W_BACKUP_P, i, j]
             for i in range(N_MODEL):
                 model[i] = ws[W_VEC, V_BACKUP_MODEL, i]
+            memo[M_CUSUM] = cusum_before
             for k in range(N_OUTPUTS):
                 out[k] = 0.0
             write_outputs(x, p, settings, StepStatus.DIVERGED, model[X_R], model[X_VY], out)
@@ -345,8 +466,8 @@ def make_kernels(n):
     def objective_n(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind):
         """Tuning objective over a sequence: eq. 21 mean |innovation| (MAE) or Gaussian NLL.
 
-        Only epochs with a predicted measurement (UPDATED or GATED) count. A diverging filter, or
-        one that never predicts, scores DIVERGENCE_PENALTY.
+        Only epochs with a predicted measurement (UPDATED, GATED, NONLINEAR) count. A diverging
+        filter, or one that never predicts, scores DIVERGENCE_PENALTY.
         """
         ws = np.zeros((WORK_SLOTS, WORK_SIZE, WORK_SIZE))
         out = np.zeros(N_OUTPUTS)
@@ -358,7 +479,7 @@ def make_kernels(n):
                             epochs[k, E_YAW_RATE], ws, out)
             if status == StepStatus.DIVERGED:
                 return DIVERGENCE_PENALTY
-            if status != StepStatus.UPDATED and status != StepStatus.GATED:
+            if status != StepStatus.UPDATED and status != StepStatus.GATED and status != StepStatus.NONLINEAR:
                 continue
             if kind == MAE:
                 total += abs(out[O_E0]) + abs(out[O_E1])

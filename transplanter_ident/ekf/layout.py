@@ -3,8 +3,9 @@
 The kernels of :mod:`.model` and :mod:`.kernels` work on flat float arrays; this module names
 their slots so that no kernel writes a bare number:
 
-* state x (n,): [vy, r, psi, theta_f, theta_r] in ``heading`` mode (z = [vy, psi]) or
-  [vy, r, theta_f, theta_r] in ``yaw_rate`` mode (the paper's eq. 11, z = [vy, r]);
+* state x (n,): [vy, r, psi, theta_f, theta_r, b] in ``heading`` mode (z = [vy_antenna, psi]) or
+  [vy, r, theta_f, theta_r, b] in ``yaw_rate`` mode (the paper's eq. 11 plus b, z = [vy_antenna, r]);
+  theta = ln C (``log``) or C (``linear``), b the steering-sensor offset (wheel = sensor - b);
 * settings (N_SETTINGS,): the filter options as numbers (``S_*``);
 * outputs (N_OUTPUTS,): one row per epoch (``O_*``);
 * memo (N_MEMO,): what the step remembers between epochs (``M_*``);
@@ -18,37 +19,46 @@ from __future__ import annotations
 
 import enum
 
-# state: the motion states first, the two stiffness states last
+# state: the motion states first, then the two stiffness states, then the steering offset
 X_VY, X_R, X_PSI = 0, 1, 2
-HEADING_STATES, YAW_RATE_STATES = 5, 4
+HEADING_STATES, YAW_RATE_STATES = 6, 5  # [vy, r, psi, th_f, th_r, b] and [vy, r, th_f, th_r, b]
 N_MOTION_HEADING, N_MOTION_YAW_RATE = 3, 2
+N_PARAMETER_STATES = 3  # theta_f, theta_r, steering offset b (random walks)
+X_THETA_F, X_THETA_R, X_OFFSET = -3, -2, -1  # the parameter states, counted from the end
 
-# measurement z = [vy, psi] (heading) or [vy, r] (yaw_rate): diag R and innovation order
+# measurement z = [vy at the antenna, psi] (heading) or [vy at the antenna, r] (yaw_rate)
 Z_VY, Z_SECOND = 0, 1
 
 # settings vector
 S_METHOD, S_LOG, S_HEADING, S_MIN_SPEED, S_LOW, S_HIGH = 0, 1, 2, 3, 4, 5
 S_GATE, S_MAX_GATED, S_MAX_INTERVAL, S_P0_VY, S_P0_R, S_P0_PSI = 6, 7, 8, 9, 10, 11
-N_SETTINGS = 12
+S_ANTENNA_X, S_MAX_SLIP, S_MAX_LAT_ACC = 12, 13, 14
+S_CUSUM_SCALE, S_CUSUM_THRESHOLD, S_CUSUM_CAP, S_CHANGE_INFLATION = 15, 16, 17, 18
+S_LINEAR_RANGE, S_CHANGE_DETECTION = 19, 20
+N_SETTINGS = 21
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6
 O_VY_MODEL, O_R_MODEL, O_E0, O_E1, O_S00, O_S01, O_S11, O_NIS = 7, 8, 9, 10, 11, 12, 13, 14
-N_OUTPUTS = 15
+O_OFFSET, O_OFFSET_STD, O_CORRELATION, O_CHANGE, O_CUSUM = 15, 16, 17, 18, 19
+O_SLIP_F, O_SLIP_R, O_LAT_ACC, O_DT = 20, 21, 22, 23
+N_OUTPUTS = 24
 
 # memo vector
-M_T_PREV, M_INITIALISED, M_GATED = 0, 1, 2
-N_MEMO = 3
+M_T_PREV, M_INITIALISED, M_GATED, M_CUSUM = 0, 1, 2, 3
+N_MEMO = 4
 
 # the open-loop model's state [vy, r, psi]
 N_MODEL = 3
 
-# epoch columns (epochs.EpochArrays.kernel_input)
+# epoch columns of the kernels' input, and the Epoch field each one holds (joint_ekf.kernel_input)
 E_T, E_SPEED, E_STEERING, E_STEERING_RATE, E_VY, E_PSI, E_YAW_RATE = 0, 1, 2, 3, 4, 5, 6
-N_EPOCH_COLUMNS = 7
+EPOCH_COLUMNS = ("t", "speed", "steering", "steering_rate", "antenna_lateral_velocity", "heading", "yaw_rate")
+N_EPOCH_COLUMNS = len(EPOCH_COLUMNS)
 
 # vehicle constants (model.vehicle_array)
 VEH_MASS, VEH_LF, VEH_LR, VEH_IZ = 0, 1, 2, 3
+N_VEHICLE = 4
 
 # discretisation codes (settings[S_METHOD])
 EXACT, EULER = 0, 1
@@ -63,7 +73,7 @@ W_T, W_DT_F, W_DT_R, W_NT, W_NDT_F, W_NDT_R = 6, 7, 8, 9, 10, 11
 # ... and the filter step (kernels.py); W_GAIN rows: K[:, 0], K[:, 1], (HP)[0], (HP)[1]
 W_F, W_TMP, W_GAIN, W_BACKUP_P, W_VEC = 12, 13, 14, 15, 16
 WORK_SLOTS = 17
-WORK_SIZE = 5
+WORK_SIZE = 6
 # rows of ws[W_VEC]
 V_BACKUP_X, V_BACKUP_MODEL, V_NEW_X, V_NEW_MODEL = 0, 1, 2, 3
 # rows of ws[W_GAIN]
@@ -82,6 +92,8 @@ class StepStatus(enum.IntEnum):
     REJECTED_INVALID = 6  # NaN or Inf in the epoch: nothing changed
     REJECTED_STAMP = 7  # stamp not after the previous epoch: nothing changed
     DIVERGED = 8  # the step produced a non-finite state: rolled back
+    NONLINEAR = 9  # slip or lateral acceleration beyond the linear tire: motion updated, stiffness and offset held
+    REINITIALISED = 10  # max_gated consecutive epochs failed the gate: motion states taken from the measurement
 
     @property
     def stiffness_updated(self) -> bool:

@@ -6,15 +6,21 @@ Here, for each GNSS epoch t_k (velocity and heading matched by stamp):
 * heading: ENU yaw, or compass heading (clockwise from north) for ``ned``; unwrapped across +-pi;
 * velocity: ENU or NED, rotated into the body frame by the heading;
 * yaw rate: the interval mean over [t_{k-1}, t_k] from heading increments (never a derivative);
-* lever arm: v_cg = v_antenna - r x p_antenna, i.e. vy_cg = vy - r ax, vx_cg = vx + r ay;
+* timing: a GNSS sample stamped t describes the motion at t - ``gnss_delay`` (drivers that
+  stamp on arrival); the epoch time and the steering interval use that time;
+* lever arm: the filter measures the antenna's lateral velocity (h(x) = vy + ax r); the CG
+  values vy_cg = vy - r ax (display) and vx_cg = vx + r ay (the speed input) use the interval r;
 * inputs: vx averaged over [t_{k-1}, t_k], and the steering angle over the interval as its
   least-squares line (mean and slope) through the faster steering stream, interpolated
   linearly between its samples. The interval mean is DESIGN.md's input; the slope lets the
   exact model follow a ramp, which matters because at 2 m/s the lateral dynamics (time
   constant ~40 ms) are much faster than a 5 Hz GNSS interval.
 
-Plain functions and one small stateful assembler, no ROS types: the node, the bag reader and
-the simulator tests all feed the same :class:`EpochAssembler`.
+An epoch is formed only once the steering stream covers its interval (a steering sample at or
+after t_k), or, at the latest, when the next GNSS epoch is matched (then it is counted as
+uncovered), so the result does not depend on whether GNSS or steering arrives first. Plain
+functions and one small stateful assembler, no ROS types: the node, the bag reader and the
+simulator tests all feed the same :class:`EpochAssembler`.
 """
 
 from __future__ import annotations
@@ -24,7 +30,7 @@ from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-from transplanter_ident.config.params_file import FRAMES
+from transplanter_ident.config.params_file import FRAMES, EstimatorParams
 from transplanter_ident.epochs.epoch import Epoch, Rejection
 from transplanter_ident.epochs.frames import (
     body_velocity,
@@ -35,6 +41,9 @@ from transplanter_ident.epochs.frames import (
     velocity_to_enu,
 )
 from transplanter_ident.epochs.steering_line import interval_line
+
+#: s: stamps closer than this count as the same instant (clocks written as float seconds)
+STAMP_EPSILON = 1.0e-6
 
 
 @dataclass(frozen=True)
@@ -48,6 +57,16 @@ class AssemblerSettings:
     max_steering: float = 0.7
     match_tolerance: float = 0.02  # s between velocity and heading stamps of one epoch
     steering_timeout: float = 0.5  # s: a newer steering sample must exist within this of t_k
+    gnss_delay: float = 0.0  # s: GNSS stamped t describes the motion at t - gnss_delay
+    steering_buffer: float = 10.0  # s of steering history kept (bounded memory without GNSS)
+
+    @classmethod
+    def from_params(cls, params: EstimatorParams) -> AssemblerSettings:
+        """Frames, lever arm, steering limit and GNSS timing from the parameters (node and bags alike)."""
+        vehicle = params.config.vehicle
+        return cls(velocity_frame=params.frames.velocity, heading_frame=params.frames.heading,
+                   antenna_x=vehicle.antenna_x, antenna_y=vehicle.antenna_y, max_steering=vehicle.max_steering,
+                   match_tolerance=params.gnss.pairing_tolerance, gnss_delay=params.gnss.delay)
 
     def __post_init__(self) -> None:
         for name in ("velocity_frame", "heading_frame"):
@@ -66,9 +85,10 @@ class EpochAssembler:
     """Matches velocity and heading by stamp and turns them, with steering, into epochs.
 
     Feed samples in arrival order; each ``add_*`` returns the epochs completed by that sample
-    (zero or one) and records rejected samples in :attr:`rejections` (drained by the caller).
-    An epoch is emitted as soon as its velocity and heading have arrived, using the steering
-    received so far, so online (node) and offline (bag order) results agree.
+    and records rejected samples in :attr:`rejections` (drained by the caller). An epoch waits
+    until the steering covers its interval (see the module docstring), so online (node) and
+    offline (bag order) results agree whichever stream arrives first. :meth:`finish` emits
+    what still waits at the end of a recording.
     """
 
     def __init__(self, settings: AssemblerSettings) -> None:
@@ -78,6 +98,8 @@ class EpochAssembler:
         self._heading: deque[tuple[float, float]] = deque(maxlen=32)
         self._steering: deque[tuple[float, float]] = deque()
         self._last_steering_stamp = -math.inf
+        self._pending: deque[tuple[float, float, float, float]] = deque()  # matched GNSS (t, east, north, yaw)
+        self.uncovered_epochs = 0  # epochs formed before the steering covered their interval
         self._previous: tuple[float, _GnssSample, float] | None = None  # (t, sample, vx_cg)
 
     def reset(self) -> None:
@@ -130,14 +152,21 @@ class EpochAssembler:
             return self._reject("steering", stamp, "stamp not after the previous steering sample")
         self._last_steering_stamp = stamp
         self._steering.append((stamp, angle))
-        return []
+        while len(self._steering) > 2 and self._steering[0][0] < stamp - self.settings.steering_buffer:
+            self._steering.popleft()
+        return self._flush(force=False)
+
+    def finish(self) -> list[Epoch]:
+        """Emit the epochs still waiting for steering (end of a recording)."""
+        return self._flush(force=True)
 
     def _reject(self, topic: str, stamp: float, reason: str) -> list[Epoch]:
         self.rejections.append(Rejection(topic, stamp, reason))
         return []
 
     def _stale_gnss(self, stamp: float) -> bool:
-        return self._previous is not None and stamp <= self._previous[0]
+        latest = self._pending[-1][0] if self._pending else (self._previous[0] if self._previous else None)
+        return latest is not None and stamp - self.settings.gnss_delay <= latest
 
     def _match(self) -> list[Epoch]:
         tol = self.settings.match_tolerance
@@ -148,9 +177,27 @@ class EpochAssembler:
                         self._velocity.popleft()
                     for _ in range(hi + 1):
                         self._heading.popleft()
-                    epoch = self._gnss_epoch(tv, east, north, yaw)
-                    return [] if epoch is None else [epoch]
+                    self._pending.append((tv - self.settings.gnss_delay, east, north, yaw))
+                    return self._flush(force=False)
         return []
+
+    def _flush(self, *, force: bool) -> list[Epoch]:
+        """Form the waiting epochs whose interval the steering covers (all of them if ``force``).
+
+        An epoch also goes once a later one waits behind it: it has waited a whole GNSS period.
+        """
+        epochs: list[Epoch] = []
+        while self._pending:
+            t = self._pending[0][0]
+            covered = self._last_steering_stamp >= t - STAMP_EPSILON
+            if not (covered or force or len(self._pending) > 1):
+                break
+            if not covered and self._previous is not None:
+                self.uncovered_epochs += 1
+            epoch = self._gnss_epoch(*self._pending.popleft())
+            if epoch is not None:
+                epochs.append(epoch)
+        return epochs
 
     def _gnss_epoch(self, t: float, east: float, north: float, yaw: float) -> Epoch | None:
         previous = self._previous
@@ -173,14 +220,14 @@ class EpochAssembler:
             return None
         return Epoch(t=t, longitudinal_velocity=vx, lateral_velocity=vy, heading=unwrapped,
                      yaw_rate=yaw_rate, steering=steering[0], steering_rate=steering[1],
-                     speed=0.5 * (vx_before + vx))
+                     speed=0.5 * (vx_before + vx), antenna_lateral_velocity=vy_ant)
 
     def _steering_line(self, start: float, end: float) -> tuple[float, float] | None:
         samples = self._steering
         while len(samples) > 1 and samples[1][0] <= start:
             samples.popleft()
-        if not samples or samples[-1][0] < end - self.settings.steering_timeout:
-            return None
+        if not samples or samples[-1][0] < end - self.settings.steering_timeout or samples[0][0] > end:
+            return None  # nothing recent, or nothing before the interval's end (never extrapolate back)
         times, values = zip(*samples, strict=True)
         return interval_line(times, values, start, end)
 

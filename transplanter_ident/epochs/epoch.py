@@ -20,6 +20,13 @@ class Epoch:
     steering: float  # interval-mean front steering angle, rad
     steering_rate: float  # slope of the steering over the interval, rad/s
     speed: float  # interval-mean vx, m/s
+    #: vy of the GNSS antenna in body axes at t, m/s: what the filter measures (h = vy + antenna_x r);
+    #: ``lateral_velocity`` is the CG value from the interval-mean r, for display. None: the same.
+    antenna_lateral_velocity: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.antenna_lateral_velocity is None:
+            object.__setattr__(self, "antenna_lateral_velocity", self.lateral_velocity)
 
 
 class EpochArrays:
@@ -38,12 +45,9 @@ class EpochArrays:
     def __getitem__(self, index: int) -> Epoch:
         return Epoch(*map(float, self._data[index]))
 
-    def kernel_input(self) -> np.ndarray:
-        """Columns [t, speed, steering, steering_rate, vy, psi, r] for ekf.run_kernel."""
-        return np.ascontiguousarray(
-            np.column_stack([self.t, self.speed, self.steering, self.steering_rate, self.lateral_velocity,
-                             self.heading, self.yaw_rate])
-        )
+    def column(self, name: str) -> np.ndarray:
+        """One field of every epoch, by its Epoch field name."""
+        return getattr(self, name)
 
 
 @dataclass(frozen=True)

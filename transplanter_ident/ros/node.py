@@ -207,14 +207,6 @@ def message_type_name(value: str) -> str:
     return str(value).rsplit("/", 1)[-1]
 
 
-def assembler_settings(params: EstimatorParams) -> AssemblerSettings:
-    """The assembler's frames, lever arm and steering limit from the parameters."""
-    vehicle = params.config.vehicle
-    return AssemblerSettings(velocity_frame=params.frames.velocity, heading_frame=params.frames.heading,
-                             antenna_x=vehicle.antenna_x, antenna_y=vehicle.antenna_y,
-                             max_steering=vehicle.max_steering)
-
-
 def seconds_to_stamp(t: float) -> Time:
     """Float seconds -> builtin_interfaces/Time (nearest nanosecond)."""
     sec = math.floor(t)
@@ -245,7 +237,7 @@ class EstimatorNode(Node):
 
         self._ekf = JointEKF(self._params.config)
         _warm_up(self._params)
-        self._assembler = EpochAssembler(assembler_settings(self._params))
+        self._assembler = EpochAssembler(AssemblerSettings.from_params(self._params))
         topics = self._params.topics
         self._health = HealthMonitor(thresholds, time.monotonic(),
                                      {"velocity": topics.velocity, "heading": topics.heading,

@@ -85,6 +85,8 @@ class SimConfig:
     integration_step: float = 0.002  # s, upper bound; the used step divides 1 / gnss_rate
     seed: int = 0
     small_angle: bool = True  # cos(delta) -> 1, so linear tires reproduce eq. (4) exactly
+    steering_offset: float = 0.0  # rad: the steering sensor reads the wheel angle + this
+    gnss_delay: float = 0.0  # s: GNSS messages are stamped this late (the motion is at stamp - delay)
 
     def __post_init__(self) -> None:
         if self.tire not in TIRE_MODELS:
@@ -93,13 +95,15 @@ class SimConfig:
             require_positive(name, getattr(self, name))
         require_finite("steering_time_offset", self.steering_time_offset)
         require_finite("initial_heading", self.initial_heading)
+        require_finite("steering_offset", self.steering_offset)
+        require_finite("gnss_delay", self.gnss_delay)
 
 
 @dataclass(frozen=True)
 class SimResult:
     """Sensor samples (with noise) and the ground truth at the GNSS sample times."""
 
-    gnss_time: np.ndarray  # (N,) s, starting at 0
+    gnss_time: np.ndarray  # (N,) s, starting at 0: the time of the motion the GNSS samples describe
     velocity_enu: np.ndarray  # (N, 2) east, north velocity of the antenna, with noise
     heading: np.ndarray  # (N,) ENU yaw of the body, wrapped to (-pi, pi], with noise
     steering_time: np.ndarray  # (M,) s
@@ -111,6 +115,11 @@ class SimResult:
     truth_cf: np.ndarray  # (N,) N/rad per tire
     truth_cr: np.ndarray  # (N,)
     truth_steering: np.ndarray  # (N,) true delta at gnss_time
+    gnss_stamp: np.ndarray | None = None  # (N,) s, the GNSS messages' stamps: gnss_time + gnss_delay
+
+    def __post_init__(self) -> None:
+        if self.gnss_stamp is None:
+            object.__setattr__(self, "gnss_stamp", self.gnss_time)
 
 
 # --------------------------------------------------------------------------- simulation
@@ -146,7 +155,7 @@ def simulate(config: SimConfig) -> SimResult:
     heading_meas = wrap_angle(psi + noise.heading * rng.standard_normal(psi.shape))
     steer_meas = _evaluate(config.steering, steering_time) + noise.steering * rng.standard_normal(
         steering_time.shape
-    )
+    ) + config.steering_offset
 
     return SimResult(
         gnss_time=gnss_time,
@@ -161,6 +170,7 @@ def simulate(config: SimConfig) -> SimResult:
         truth_cf=cf,
         truth_cr=cr,
         truth_steering=delta_true,
+        gnss_stamp=gnss_time + config.gnss_delay,
     )
 
 

@@ -39,10 +39,27 @@ import numba
 import numpy as np
 
 from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams
-from transplanter_ident.ekf.entries import objective_4, objective_5, objective_kernel
-from transplanter_ident.ekf.joint_ekf import FilterArrays
-from transplanter_ident.ekf.layout import MAE, NLL
+from transplanter_ident.ekf.entries import (
+    kernels_for,
+    objective_heading,
+    objective_kernel,
+    objective_yaw_rate,
+)
+from transplanter_ident.ekf.joint_ekf import FilterArrays, kernel_input
+from transplanter_ident.ekf.layout import (
+    HEADING_STATES,
+    MAE,
+    N_MEMO,
+    N_MODEL,
+    NLL,
+    X_R,
+    X_THETA_F,
+    X_THETA_R,
+    X_VY,
+    YAW_RATE_STATES,
+)
 from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.jit import parallel_entry_kernel
 from transplanter_ident.tuning.box import Box
 
 OBJECTIVES = {"mae": MAE, "nll": NLL}
@@ -80,37 +97,41 @@ def vector_to_noise(vector: np.ndarray, base: NoiseParams) -> NoiseParams:
 
 
 def candidate_matrices(positions: np.ndarray, config: EstimatorConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Diag Q (m, n) in the filter's state layout and diag R (m, 2) for log10 positions (m, 6)."""
+    """Diag Q (m, n) in the filter's state layout (densities) and diag R (m, 2) for log10 positions (m, 6).
+
+    The unsearched entries (heading and offset Q) keep the configured values.
+    """
     positions = np.atleast_2d(np.asarray(positions, dtype=np.float64))
     if positions.shape[1] != len(NAMES):
         raise ValueError(f"candidates must have {len(NAMES)} columns, got {positions.shape[1]}")
     values = 10.0**positions
-    q = values[:, :4]
-    if config.options.measurement == "heading":
-        heading_q = np.full((len(q), 1), config.noise.heading_process_noise)
-        q = np.hstack([q[:, :2], heading_q, q[:, 2:]])
+    q = np.tile(FilterArrays.from_config(config).process_noise, (len(values), 1))
+    scale = config.options.noise_rate_scale
+    motion = [X_VY, X_R]
+    q[:, motion] = values[:, :2] * scale
+    q[:, [X_THETA_F, X_THETA_R]] = values[:, 2:4] * scale
     return np.ascontiguousarray(q), np.ascontiguousarray(values[:, 4:6])
 
 
-@numba.njit(parallel=True, cache=True)
-def _batch_4(epochs, x0, p0, vehicle, settings, qs, rs, kind):  # noqa: ANN001, ANN202
+@parallel_entry_kernel
+def _batch_yaw_rate(epochs, x0, p0, vehicle, settings, qs, rs, kind):  # noqa: ANN001, ANN202
     values = np.empty(qs.shape[0])
     for i in numba.prange(qs.shape[0]):
-        values[i] = objective_4(epochs.copy(), x0.copy(), p0.copy(), np.zeros(3), np.zeros(3), vehicle.copy(),
+        values[i] = objective_yaw_rate(epochs.copy(), x0.copy(), p0.copy(), np.zeros(N_MODEL), np.zeros(N_MEMO), vehicle.copy(),
                                 settings.copy(), qs[i].copy(), rs[i].copy(), kind)
     return values
 
 
-@numba.njit(parallel=True, cache=True)
-def _batch_5(epochs, x0, p0, vehicle, settings, qs, rs, kind):  # noqa: ANN001, ANN202
+@parallel_entry_kernel
+def _batch_heading(epochs, x0, p0, vehicle, settings, qs, rs, kind):  # noqa: ANN001, ANN202
     values = np.empty(qs.shape[0])
     for i in numba.prange(qs.shape[0]):
-        values[i] = objective_5(epochs.copy(), x0.copy(), p0.copy(), np.zeros(3), np.zeros(3), vehicle.copy(),
+        values[i] = objective_heading(epochs.copy(), x0.copy(), p0.copy(), np.zeros(N_MODEL), np.zeros(N_MEMO), vehicle.copy(),
                                 settings.copy(), qs[i].copy(), rs[i].copy(), kind)
     return values
 
 
-_BATCH = {4: _batch_4, 5: _batch_5}
+_BATCH = {YAW_RATE_STATES: _batch_yaw_rate, HEADING_STATES: _batch_heading}
 
 
 def batch_objective(epochs, x0, p0, vehicle, settings, qs, rs, kind):  # noqa: ANN001, ANN201
@@ -121,7 +142,11 @@ def batch_objective(epochs, x0, p0, vehicle, settings, qs, rs, kind):  # noqa: A
     and two threads sharing one array contend for that cache line so hard that a second
     thread gained nothing (measured: 2 threads, shared inputs 1.0x, private copies 2.0x).
     """
-    return _BATCH[x0.shape[0]](epochs, x0, p0, vehicle, settings, qs, rs, kind)
+    kernels_for(x0, p0, vehicle=vehicle, settings=settings, epochs=epochs)  # shape checks
+    n = x0.shape[0]
+    if qs.ndim != 2 or qs.shape[1] != n or rs.shape != (qs.shape[0], 2):
+        raise ValueError(f"qs {qs.shape} and rs {rs.shape}: expected (m, {n}) and (m, 2)")
+    return _BATCH[n](epochs, x0, p0, vehicle, settings, qs, rs, kind)
 
 
 @dataclass(frozen=True)
@@ -139,7 +164,7 @@ class TuningProblem:
     @classmethod
     def from_epochs(cls, config: EstimatorConfig, epochs: EpochArrays, objective: str = "mae") -> TuningProblem:
         """Build from an epoch sequence (bag_io.read_epochs or the simulator)."""
-        return cls(config, epochs.kernel_input(), objective)
+        return cls(config, kernel_input(epochs), objective)
 
     @property
     def box(self) -> Box:
@@ -162,7 +187,7 @@ class TuningProblem:
         """Objective of one NoiseParams (any values, not clipped to the box), single-threaded."""
         arrays = FilterArrays.from_config(replace(self.config, noise=noise))
         return float(objective_kernel(self.kernel_input, arrays.initial_state.copy(),
-                                      arrays.initial_covariance.copy(), np.zeros(3), np.zeros(3), arrays.vehicle,
+                                      arrays.initial_covariance.copy(), np.zeros(N_MODEL), np.zeros(N_MEMO), arrays.vehicle,
                                       arrays.settings, arrays.process_noise, arrays.measurement_noise,
                                       OBJECTIVES[self.objective]))
 
