@@ -131,7 +131,7 @@ def offline_outputs(samples: list, params: EstimatorParams, noise_switch: dict[i
     ``noise_switch``: sample index -> new noise applied before that sample; ``resets``: sample
     indices before which filter and assembler restart.
     """
-    from transplanter_ident.ros.node import assembler_settings
+    from transplanter_ident.ros.parameters import assembler_settings
 
     assembler = EpochAssembler(assembler_settings(params))
     ekf = JointEKF(params.config)
@@ -208,7 +208,7 @@ def record_spec(*, diagnostics: bool = False) -> dict[str, list[str]]:
 
 
 def test_every_params_file_key_is_declared() -> None:
-    from transplanter_ident.ros.node import NODE_PARAMETERS, parameter_defaults
+    from transplanter_ident.ros.parameters import NODE_PARAMETERS, parameter_defaults
 
     declared = parameter_defaults()
     assert set(params_to_flat(EstimatorParams())) <= set(declared)
@@ -222,7 +222,7 @@ def test_every_params_file_key_is_declared() -> None:
 
 
 def test_descriptors_read_only_and_ranges() -> None:
-    from transplanter_ident.ros.node import descriptor_for, is_read_only, parameter_defaults
+    from transplanter_ident.ros.parameters import descriptor_for, is_read_only, parameter_defaults
 
     defaults = parameter_defaults()
     for name in ("topics.velocity", "topics.steering_type", "frames.heading", "vehicle.mass", "vehicle.lf",
@@ -245,7 +245,7 @@ def test_descriptors_read_only_and_ranges() -> None:
     ("diagnostics.stale_timeout", -1.0, "stale_timeout"),
 ])
 def test_validate_rejects_with_a_reason(key: str, value: Any, reason: str) -> None:
-    from transplanter_ident.ros.node import parameter_defaults, validate
+    from transplanter_ident.ros.parameters import parameter_defaults, validate
 
     flat = parameter_defaults()
     validate(flat)
@@ -257,7 +257,7 @@ def test_validate_rejects_with_a_reason(key: str, value: Any, reason: str) -> No
 def test_stamp_conversions_round_trip() -> None:
     """Node and bag reader share measurements.stamp_seconds; the node's inverse rounds to the nanosecond."""
     from transplanter_ident.epochs.frames import stamp_seconds
-    from transplanter_ident.ros.node import seconds_to_stamp
+    from transplanter_ident.ros.adapters import seconds_to_stamp
 
     rng = np.random.default_rng(0)
     for sec, nanosec in zip(rng.integers(0, 2_000_000_000, 200).tolist(), rng.integers(0, 10**9, 200).tolist(),
@@ -360,7 +360,7 @@ def test_online_equals_offline(tmp_path: Path, executor: str) -> None:
     from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD, O_STATUS
     from transplanter_ident.epochs.assembler import assemble
     from transplanter_ident.epochs.epoch import EpochArrays
-    from transplanter_ident.ros.node import assembler_settings
+    from transplanter_ident.ros.parameters import assembler_settings
 
     params = EstimatorParams()
     bag = sample_bag(tmp_path)
