@@ -100,7 +100,11 @@ class EstimatorNode(Node):
         # steady clock: diagnostics keep flowing (and report stale inputs) even if a sim clock stops
         self._diagnostics_timer = self.create_timer(self._settings.diagnostics_period, self._publish_diagnostics,
                                                     clock=Clock(clock_type=ClockType.STEADY_TIME))
-        options = params.config.options
+        self._announce()
+
+    def _announce(self) -> None:
+        """One start-up line: the inputs with their message types and the filter's structure."""
+        options = self._settings.params.config.options
         inputs = ", ".join(f"{self._topics[role]} ({self._settings.message_types[role].rsplit('/', 1)[-1]})"
                            for role in ("velocity", "heading", "steering"))
         self.get_logger().info(f"estimating Cf, Cr from {inputs}; "
