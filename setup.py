@@ -25,7 +25,7 @@ setup(
     python_requires=">=3.10",
     entry_points={
         "console_scripts": [
-            f"estimator = {PACKAGE}.ros.node:main",
+            f"estimator = {PACKAGE}.ros.main:main",
             f"tuner = {PACKAGE}.cli.tuner:main",
             f"replay = {PACKAGE}.cli.replay:main",
             f"simulate = {PACKAGE}.cli.simulate:main",

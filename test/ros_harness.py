@@ -85,12 +85,12 @@ def isolated(command: list[str]) -> list[str]:
 
 
 def estimator_command(*ros_args: str, options: Iterable[str] = ()) -> list[str]:
-    """The installed ``estimator`` next to this interpreter, else ``python -m transplanter_ident.ros.node``.
+    """The installed ``estimator`` next to this interpreter, else ``python -m transplanter_ident.ros.main``.
 
     ``options`` (e.g. ``--executor single``) go before ``--ros-args``.
     """
     script = Path(sys.executable).parent / "estimator"
-    base = [str(script)] if script.is_file() else [sys.executable, "-m", "transplanter_ident.ros.node"]
+    base = [str(script)] if script.is_file() else [sys.executable, "-m", "transplanter_ident.ros.main"]
     base = [*base, *options]
     return [*base, "--ros-args", *ros_args] if ros_args else base
 
@@ -337,8 +337,8 @@ def scenario(spec: dict[str, Any]) -> dict[str, Any]:
         {"spin": s}
         {"wait_for": [key, count, timeout]}      spin until ``count`` messages are recorded
         {"mark": name}                           monotonic time and record counts
-        {"set_parameters": {name: value}, "as": name}
-        {"get_parameters": [names], "as": name}
+        {"set_parameters": {name: value}, "as": name, "node"?: "/estimator"}
+        {"get_parameters": [names], "as": name, "node"?: "/estimator"}
         {"trigger": service, "as": name}
     Returns {"records", "marks", "results", "alive", "returncode", "log"}.
     """
@@ -387,9 +387,9 @@ def _run_step(session: RosSession, step: dict[str, Any], marks: dict[str, Any], 
         marks[step["mark"]] = {"t": time.monotonic(), "counts": {k: len(v) for k, v in session.records.items()},
                                "alive": session.alive()}
     elif "set_parameters" in step:
-        results[step["as"]] = session.set_parameters("/estimator", step["set_parameters"])
+        results[step["as"]] = session.set_parameters(step.get("node", "/estimator"), step["set_parameters"])
     elif "get_parameters" in step:
-        results[step["as"]] = session.get_parameters("/estimator", step["get_parameters"])
+        results[step["as"]] = session.get_parameters(step.get("node", "/estimator"), step["get_parameters"])
     elif "trigger" in step:
         results[step["as"]] = session.trigger(step["trigger"])
     else:

@@ -206,7 +206,7 @@ def record_spec(*, diagnostics: bool = False) -> dict[str, list[str]]:
 
 
 def test_every_params_file_key_is_declared() -> None:
-    from transplanter_ident.ros.node import NODE_PARAMETERS, parameter_defaults
+    from transplanter_ident.ros.parameters import NODE_PARAMETERS, parameter_defaults
 
     declared = parameter_defaults()
     assert set(params_to_flat(EstimatorParams())) <= set(declared)
@@ -220,7 +220,7 @@ def test_every_params_file_key_is_declared() -> None:
 
 
 def test_descriptors_read_only_and_ranges() -> None:
-    from transplanter_ident.ros.node import descriptor_for, is_read_only, parameter_defaults
+    from transplanter_ident.ros.parameters import descriptor_for, is_read_only, parameter_defaults
 
     defaults = parameter_defaults()
     for name in ("topics.velocity", "topics.steering_type", "frames.heading", "vehicle.mass", "vehicle.lf",
@@ -243,7 +243,7 @@ def test_descriptors_read_only_and_ranges() -> None:
     ("diagnostics.stale_timeout", -1.0, "stale_timeout"),
 ])
 def test_validate_rejects_with_a_reason(key: str, value: Any, reason: str) -> None:
-    from transplanter_ident.ros.node import parameter_defaults, validate
+    from transplanter_ident.ros.parameters import parameter_defaults, validate
 
     flat = parameter_defaults()
     validate(flat)
@@ -255,7 +255,7 @@ def test_validate_rejects_with_a_reason(key: str, value: Any, reason: str) -> No
 def test_stamp_conversions_round_trip() -> None:
     """Node and bag reader share measurements.stamp_seconds; the node's inverse rounds to the nanosecond."""
     from transplanter_ident.epochs.frames import stamp_seconds
-    from transplanter_ident.ros.node import seconds_to_stamp
+    from transplanter_ident.ros.adapters import seconds_to_stamp
 
     rng = np.random.default_rng(0)
     for sec, nanosec in zip(rng.integers(0, 2_000_000_000, 200).tolist(), rng.integers(0, 10**9, 200).tolist(),

@@ -21,6 +21,7 @@ from typing import Any
 from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 
+from transplanter_ident.config.schema import PARAMS
 from transplanter_ident.epochs.frames import quaternion_yaw, stamp_seconds
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
@@ -50,7 +51,7 @@ OUTPUT_STIFFNESS = "cornering_stiffness"
 OUTPUT_STIFFNESS_STD = "cornering_stiffness_std"
 OUTPUT_MODEL = "model_output"
 OUTPUT_MEASUREMENT = "measurement"
-OUTPUT_FRAME_ID = "base_link"
+OUTPUT_FRAME_ID = str(PARAMS["output.frame_id"].default)  # "base_link"; replay -o takes the parameter
 
 NS_PER_S = 1_000_000_000
 

@@ -293,8 +293,9 @@ def write_sim_bag(result: Any, path: str | Path, options: SimBagOptions | None =
 
 
 def write_output_bag(path: str | Path, epochs: EpochArrays, outputs: np.ndarray, *,
-                     namespace: str = OUTPUT_NAMESPACE, overwrite: bool = False) -> int:
-    """Write the node's output topics for every epoch, stamped (and logged) at the epoch time.
+                     namespace: str = OUTPUT_NAMESPACE, overwrite: bool = False,
+                     frame_id: str = OUTPUT_FRAME_ID) -> int:
+    """Write the node's output topics for every epoch, stamped (and logged) at the epoch time, framed ``frame_id``.
 
     Epochs whose outputs are not all finite are skipped (the node never publishes NaN).
     Returns the number of epochs written.
@@ -313,11 +314,11 @@ def write_output_bag(path: str | Path, epochs: EpochArrays, outputs: np.ndarray,
         for ns, (vx, vy, r), (cf, cr, cf_std, cr_std, vy_model, r_model) in zip(t_ns, meas, out, strict=True):
             if not all(math.isfinite(v) for v in (vx, vy, r, cf, cr, cf_std, cr_std, vy_model, r_model)):
                 continue
-            bag.write_vector3(topics[OUTPUT_STIFFNESS], ns, (cf, cr, 0.0), frame_id=OUTPUT_FRAME_ID)
-            bag.write_vector3(topics[OUTPUT_STIFFNESS_STD], ns, (cf_std, cr_std, 0.0), frame_id=OUTPUT_FRAME_ID)
+            bag.write_vector3(topics[OUTPUT_STIFFNESS], ns, (cf, cr, 0.0), frame_id=frame_id)
+            bag.write_vector3(topics[OUTPUT_STIFFNESS_STD], ns, (cf_std, cr_std, 0.0), frame_id=frame_id)
             bag.write_twist(topics[OUTPUT_MODEL], ns, (0.0, vy_model, 0.0), (0.0, 0.0, r_model),
-                            frame_id=OUTPUT_FRAME_ID)
+                            frame_id=frame_id)
             bag.write_twist(topics[OUTPUT_MEASUREMENT], ns, (vx, vy, 0.0), (0.0, 0.0, r),
-                            frame_id=OUTPUT_FRAME_ID)
+                            frame_id=frame_id)
             written += 1
     return written

@@ -74,6 +74,7 @@ def _run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from transplanter_ident.bags import read_bag, summarize_rejections, write_output_bag
+    from transplanter_ident.config.params_file import parameter_value
     from transplanter_ident.ekf.joint_ekf import run_sequence
     from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD
     from transplanter_ident.evaluation.metrics import format_table2, propagated, stiffness_error, table2_row
@@ -89,7 +90,8 @@ def _run(args: argparse.Namespace) -> int:
     if args.csv:
         write_csv(args.csv, epochs, outputs)
     if args.output:
-        write_output_bag(args.output, epochs, outputs, overwrite=args.force)
+        write_output_bag(args.output, epochs, outputs, overwrite=args.force,
+                         frame_id=parameter_value(params, "output.frame_id"))
 
     counts = data.counts
     span = float(epochs.t[-1] - epochs.t[0]) if len(epochs) else 0.0

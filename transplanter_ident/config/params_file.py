@@ -14,6 +14,8 @@ node's own section (``estimator`` or ``/estimator``) overrides it. (rcl itself m
 ``/**`` sections before all node sections; the simpler per-file rule above only differs when a later
 file's ``/**`` sets a key that an earlier file set under the node name.)
 
+Which keys exist, their types, ranges and choices come from the schema (:mod:`.schema`): an unknown
+key is an error that names it, whatever its namespace; an integer is accepted where a float is due.
 Every error is a :class:`ParamsError` whose one-line message names the file, the key and the reason.
 This module does not import rclpy.
 """
@@ -32,9 +34,17 @@ from typing import Any
 import yaml
 
 from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams, VehicleParams
+from transplanter_ident.config.schema import (
+    FRAMES,
+    PARAMS,
+    SCHEMA,
+    Param,
+    default_values,
+    is_ros_builtin,
+    unknown_key_message,
+)
 from transplanter_ident.files import atomic_write_text
 
-FRAMES = ("enu", "ned")
 WILDCARD = "/**"
 
 
@@ -100,7 +110,7 @@ class GnssConfig:
 
 @dataclass(frozen=True)
 class EstimatorParams:
-    """Everything the parameters file holds; ``extra`` keeps other keys flat (``diagnostics.x``)."""
+    """Everything the parameters file holds; ``extra`` keeps the other schema keys flat (``diagnostics.x``)."""
 
     config: EstimatorConfig = field(default_factory=EstimatorConfig)
     topics: TopicConfig = field(default_factory=TopicConfig)
@@ -121,54 +131,70 @@ _SECTIONS: dict[str, tuple[type, ...]] = {
 }
 
 
-def _defaults(cls: type) -> dict[str, Any]:
-    return {f.name: f.default for f in dataclasses.fields(cls)}
+def _field_names(cls: type) -> frozenset[str]:
+    return frozenset(f.name for f in dataclasses.fields(cls))
 
 
-#: dotted key -> default value, for every key that maps onto a dataclass field.
-KNOWN_KEYS: dict[str, Any] = {
-    f"{ns}.{name}": default
-    for ns, classes in _SECTIONS.items()
-    for cls in classes
-    for name, default in _defaults(cls).items()
-}
+#: dotted key -> default value, for every key of the schema (config/schema.py)
+KNOWN_KEYS: dict[str, Any] = default_values()
 #: keys written as YAML integers; every other number is written as a float.
-INT_KEYS = frozenset(k for k, v in KNOWN_KEYS.items() if isinstance(v, int) and not isinstance(v, bool))
+INT_KEYS = frozenset(row.key for row in SCHEMA if row.kind == "int")
+#: schema keys that a dataclass field holds
+DATACLASS_KEYS = frozenset(f"{ns}.{name}" for ns, classes in _SECTIONS.items() for cls in classes
+                           for name in _field_names(cls))
+#: schema keys that no dataclass holds (message types, diagnostics, output frame): kept in ``extra``
+NODE_ONLY_KEYS = tuple(row.key for row in SCHEMA if row.key not in DATACLASS_KEYS)
 
 
 def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
-def _convert(key: str, value: Any, default: Any) -> Any:
-    """Type-check one known key's value against its default; ints become floats where floats are due."""
-    if isinstance(default, tuple):
-        if not isinstance(value, (list, tuple)):
-            raise ParamsError(f"{key} must be a list of {len(default)} numbers, got {value!r}", key)
-        if len(value) != len(default):
-            raise ParamsError(f"{key} must have {len(default)} entries, got {len(value)}", key)
-        for entry in value:
-            if not _is_number(entry):
-                raise ParamsError(f"{key} entries must be numbers, got {entry!r}", key)
-        return tuple(float(entry) for entry in value)
-    if isinstance(default, str):
+def _convert_scalar(row: Param, value: Any) -> Any:
+    key = row.key
+    if row.kind == "str":
         if not isinstance(value, str):
             raise ParamsError(f"{key} must be a string, got {value!r}", key)
+        if row.choices and row.match(value) is None:
+            raise ParamsError(f"{key} must be one of {', '.join(row.choices)}, got {value!r}", key)
         return value
-    if isinstance(default, int):
-        if not (_is_number(value) and isinstance(value, int)):
-            raise ParamsError(f"{key} must be an integer, got {value!r}", key)
-        if value < 0:
-            raise ParamsError(f"{key} must be >= 0, got {value!r}", key)
+    if row.kind == "bool":
+        if not isinstance(value, bool):
+            raise ParamsError(f"{key} must be true or false, got {value!r}", key)
         return value
+    if row.kind == "int" and not (_is_number(value) and isinstance(value, int)):
+        raise ParamsError(f"{key} must be an integer, got {value!r}", key)
     if not _is_number(value):
         raise ParamsError(f"{key} must be a number, got {value!r}", key)
-    return float(value)
+    number = value if row.kind == "int" else float(value)
+    if row.has_range and not row.low <= number <= row.high:
+        raise ParamsError(f"{key} must be within [{row.low:g}, {row.high:g}], got {value!r}", key)
+    return number
+
+
+def convert_value(key: str, value: Any) -> Any:
+    """Check one value against the schema; integers become floats where floats are due, lists tuples.
+
+    Raises ParamsError naming the key: unknown key, wrong type or length, out of range, not a choice.
+    """
+    row = PARAMS.get(key)
+    if row is None:
+        raise ParamsError(unknown_key_message(key), key)
+    if row.kind != "float_list":
+        return _convert_scalar(row, value)
+    if not isinstance(value, (list, tuple)):
+        raise ParamsError(f"{key} must be a list of {row.length} numbers, got {value!r}", key)
+    if len(value) != row.length:
+        raise ParamsError(f"{key} must have {row.length} entries, got {len(value)}", key)
+    for entry in value:
+        if not _is_number(entry):
+            raise ParamsError(f"{key} entries must be numbers, got {entry!r}", key)
+    return tuple(float(entry) for entry in value)
 
 
 def _build(cls: type, values: Mapping[str, Any]) -> Any:
     """Construct one dataclass from the values that belong to it, re-raising its ValueError as ParamsError."""
-    names = _defaults(cls)
+    names = _field_names(cls)
     try:
         return cls(**{k: v for k, v in values.items() if k in names})
     except ValueError as exc:
@@ -176,28 +202,25 @@ def _build(cls: type, values: Mapping[str, Any]) -> Any:
         raise ParamsError(message, message.split(" ", 1)[0]) from None
 
 
-#: keys only the node reads (the input message types); offline drivers accept and ignore them
-NODE_ONLY_KEYS = ("topics.velocity_type", "topics.heading_type", "topics.steering_type")
-
-
 def flat_to_params(flat: Mapping[str, Any]) -> EstimatorParams:
     """Build validated parameters from flat dotted keys; missing keys keep their defaults.
 
-    Unknown keys under a known namespace (``ekf.``, ``vehicle.``, ``topics.``, ``frames.``,
-    ``steering.``) are errors, to catch typos; keys of other namespaces, and the node's own
-    ``topics.*_type`` message-type choices, go to ``extra``.
+    Every key must be in the schema (config/schema.py), else a ParamsError names it; rclpy's own
+    parameters (``use_sim_time``, ``qos_overrides.*``) pass through. Schema keys that no dataclass
+    holds (``topics.*_type``, ``diagnostics.*``, ``output.frame_id``) go to ``extra``, converted.
     """
     sections: dict[str, dict[str, Any]] = {ns: {} for ns in _SECTIONS}
     extra: dict[str, Any] = {}
     for key, value in flat.items():
-        namespace, _, name = key.partition(".")
-        if namespace not in _SECTIONS or key in NODE_ONLY_KEYS:
+        if is_ros_builtin(key):
             extra[key] = value
             continue
-        if key not in KNOWN_KEYS:
-            known = ", ".join(k.partition(".")[2] for k in KNOWN_KEYS if k.startswith(namespace + "."))
-            raise ParamsError(f"{key} is not a known parameter (known {namespace}.*: {known})", key)
-        sections[namespace][name] = _convert(key, value, KNOWN_KEYS[key])
+        converted = convert_value(key, value)
+        if key in NODE_ONLY_KEYS:
+            extra[key] = converted
+        else:
+            namespace, _, name = key.partition(".")
+            sections[namespace][name] = converted
 
     ekf = sections["ekf"]
     config = EstimatorConfig(
@@ -213,6 +236,11 @@ def flat_to_params(flat: Mapping[str, Any]) -> EstimatorParams:
         gnss=_build(GnssConfig, sections["gnss"]),
         extra=extra,
     )
+
+
+def parameter_value(params: EstimatorParams, key: str) -> Any:
+    """The value of one schema key in ``params`` (its default when the parameters did not set it)."""
+    return params_to_flat(params).get(key, PARAMS[key].default)
 
 
 def params_to_flat(p: EstimatorParams) -> dict[str, Any]:

@@ -40,7 +40,7 @@ def should_publish(status: StepStatus) -> bool:
 
 @dataclass(frozen=True)
 class HealthThresholds:
-    """Where the levels change (the node's ``diagnostics.*`` parameters)."""
+    """Where the levels change: the node's ``diagnostics.<field>`` parameters (defaults as in config/schema.py)."""
 
     stale_timeout: float = 1.0  # s without a message: the input is stale (ERROR)
     window: float = 10.0  # s: recent rejections/gating (arrival time) and excitation (epoch time)
@@ -138,9 +138,11 @@ class _FilterState:
 class HealthMonitor:
     """Everything the diagnostics need, fed by the node; :meth:`report` decides the levels."""
 
-    def __init__(self, thresholds: HealthThresholds, now: float, topics: dict[str, str] | None = None) -> None:
+    def __init__(self, thresholds: HealthThresholds, now: float, topics: dict[str, str] | None = None,
+                 name: str = "estimator") -> None:
         self.thresholds = thresholds
         self.topics = dict(topics or {})
+        self.name = name  # the node's name: status names read "<name>: velocity input"
         self.inputs = {name: InputMonitor(name, thresholds, now) for name in INPUTS}
         self.latency = LatencyStats()
         self._start = now
@@ -229,7 +231,7 @@ class HealthMonitor:
                   ("age_s", f"{age:.3f}" if monitor.last_arrival is not None else "never"),
                   ("rejected", str(monitor.rejected)), ("rejected_recent", str(recent)),
                   ("last_rejection", monitor.last_rejection))
-        name = f"estimator: {monitor.name} input"
+        name = f"{self.name}: {monitor.name} input"
         if age > th.stale_timeout:
             if monitor.last_arrival is None:
                 message = f"stale: no message on {topic} since start ({age:.1f} s)"
@@ -247,7 +249,7 @@ class HealthMonitor:
 
     def _motion_report(self) -> HealthReport:
         f = self._filter
-        name = "estimator: motion"
+        name = f"{self.name}: motion"
         if f.last_epoch is None:
             return HealthReport(name, WARN, "no GNSS epoch processed yet", (("status", "none"),))
         speed = f.last_epoch.speed
@@ -273,7 +275,7 @@ class HealthMonitor:
                    ("diverged_recent", str(counts["diverged"])), ("epochs_dropped", str(f.epoch_rejected)),
                    ("epochs_dropped_recent", str(counts["epoch"])), ("last_epoch_drop", f.last_epoch_rejection),
                    ("outputs_withheld", str(f.unpublished)))
-        name = "estimator: measurements"
+        name = f"{self.name}: measurements"
         window = f"in the last {th.window:g} s"
         if counts["diverged"]:
             return HealthReport(name, ERROR, f"{counts['diverged']} filter step(s) diverged and were rolled back "
@@ -293,7 +295,7 @@ class HealthMonitor:
 
     def _convergence_report(self) -> HealthReport:
         f = self._filter
-        name = "estimator: convergence"
+        name = f"{self.name}: convergence"
         est = f.last_estimate
         if est is None:
             return HealthReport(name, WARN, "no estimate yet", (("converged", "false"),))
@@ -317,7 +319,7 @@ class HealthMonitor:
         th = self.thresholds
         steer, yaw = self._steering_rms.rms(), self._yaw_rate_rms.rms()
         count = len(self._steering_rms)
-        name = "estimator: excitation"
+        name = f"{self.name}: excitation"
         values = (("steering_rms_rad", f"{steer:.4f}"), ("yaw_rate_rms_radps", f"{yaw:.4f}"),
                   ("window_epochs", str(count)), ("min_steering_rms", f"{th.min_steering_rms:g}"),
                   ("min_yaw_rate_rms", f"{th.min_yaw_rate_rms:g}"))
@@ -337,8 +339,8 @@ class HealthMonitor:
         values = (("epochs", str(lat.total)), ("median_ms", f"{1e3 * lat.percentile(50):.3f}"),
                   ("p99_ms", f"{1e3 * lat.percentile(99):.3f}"), ("max_ms", f"{1e3 * lat.percentile(100):.3f}"))
         if not len(lat):
-            return HealthReport("estimator: latency", OK, "no epoch yet", values)
-        return HealthReport("estimator: latency", OK, f"GNSS callback to publish: median "
+            return HealthReport(f"{self.name}: latency", OK, "no epoch yet", values)
+        return HealthReport(f"{self.name}: latency", OK, f"GNSS callback to publish: median "
                             f"{1e3 * lat.percentile(50):.2f} ms, p99 {1e3 * lat.percentile(99):.2f} ms", values)
 
 

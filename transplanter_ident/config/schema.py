@@ -1,0 +1,194 @@
+"""The one parameter schema of the estimator: every dotted key the node declares (DESIGN.md section 3).
+
+Each :class:`Param` row gives a key its default, type (``float``, ``int``, ``bool``, ``str`` or a
+fixed-length ``float_list``), unit, range (``low``/``high``, inclusive) or choices, description and
+whether it is read-only at run time. Everything else derives from this table: the keys the params
+file accepts and how their values are converted (:mod:`.params_file`), the node's parameter
+declarations and ParameterDescriptors (:mod:`transplanter_ident.ros.parameters`), and the
+diagnostics thresholds. The frozen dataclasses of :mod:`.parameters` keep literal defaults for
+readability; a test holds them equal to the defaults here.
+
+Choices that are ROS message types are written in full (``geometry_msgs/msg/TwistStamped``); a
+value may also name them as ``geometry_msgs/TwistStamped`` or just ``TwistStamped``.
+
+This module imports no ROS and no YAML.
+"""
+
+from __future__ import annotations
+
+import difflib
+from dataclasses import dataclass
+from typing import Any
+
+from transplanter_ident.config.parameters import DISCRETIZATIONS, MEASUREMENTS, STIFFNESS_STATES
+
+FRAMES = ("enu", "ned")
+KINDS = ("float", "int", "bool", "str", "float_list")
+#: parameters rclpy itself declares or reads; accepted everywhere and passed through untouched
+ROS_BUILTIN_KEYS = ("use_sim_time", "start_type_description_service")
+ROS_BUILTIN_PREFIXES = ("qos_overrides.",)
+
+Value = float | int | bool | str | tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class Param:
+    """One parameter: dotted key, type, default, unit, range or choices, description, read-only flag."""
+
+    key: str
+    kind: str
+    default: Value
+    unit: str = ""
+    description: str = ""
+    low: float | None = None
+    high: float | None = None
+    choices: tuple[str, ...] = ()
+    read_only: bool = True
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"{self.key}: kind must be one of {', '.join(KINDS)}, got {self.kind!r}")
+        if not _default_has_kind(self.default, self.kind):
+            raise ValueError(f"{self.key}: default {self.default!r} is not of kind {self.kind}")
+        if self.choices and self.match(str(self.default)) is None:
+            raise ValueError(f"{self.key}: default {self.default!r} is not one of its choices")
+
+    @property
+    def length(self) -> int | None:
+        """The number of entries of a ``float_list`` (None for scalars)."""
+        return len(self.default) if isinstance(self.default, tuple) else None
+
+    @property
+    def has_range(self) -> bool:
+        return self.low is not None and self.high is not None
+
+    def match(self, value: str) -> str | None:
+        """The choice that ``value`` names (full, ``pkg/Type`` or bare ``Type`` for message types), or None."""
+        for choice in self.choices:
+            if value in (choice, choice.replace("/msg/", "/"), choice.rsplit("/", 1)[-1]):
+                return choice
+        return None
+
+    def help_text(self) -> str:
+        """The description with the unit, as the node's ParameterDescriptor shows it."""
+        return self.description + (f" [{self.unit}]" if self.unit else "")
+
+
+def _default_has_kind(default: Any, kind: str) -> bool:
+    if kind == "float_list":
+        return isinstance(default, tuple) and len(default) > 0 and all(type(v) is float for v in default)
+    return type(default) is {"float": float, "int": int, "bool": bool, "str": str}[kind]
+
+
+def _float(key: str, default: float, unit: str, description: str, low: float | None = None,
+           high: float | None = None, *, read_only: bool = True) -> Param:
+    return Param(key, "float", default, unit, description, low, high, read_only=read_only)
+
+
+def _int(key: str, default: int, description: str, low: int, high: int, *, read_only: bool = True) -> Param:
+    return Param(key, "int", default, "", description, low, high, read_only=read_only)
+
+
+def _str(key: str, default: str, description: str, choices: tuple[str, ...] = ()) -> Param:
+    return Param(key, "str", default, "", description, choices=choices)
+
+
+def _floats(key: str, default: tuple[float, ...], unit: str, description: str, *, read_only: bool = True) -> Param:
+    return Param(key, "float_list", default, unit, description, read_only=read_only)
+
+
+SCHEMA: tuple[Param, ...] = (
+    # vehicle (paper Table 1, eq. 5)
+    _float("vehicle.mass", 720.0, "kg", "vehicle mass (paper Table 1)", 1.0, 1.0e5),
+    _float("vehicle.lf", 0.7, "m", "CG to front axle", 0.01, 20.0),
+    _float("vehicle.lr", 0.4, "m", "CG to rear axle", 0.01, 20.0),
+    _float("vehicle.iz", 0.0, "kg m^2", "yaw inertia; <= 0 means m*lf*lr (paper eq. 5)"),
+    _float("vehicle.antenna_x", 0.0, "m", "GNSS antenna ahead of the CG", -20.0, 20.0),
+    _float("vehicle.antenna_y", 0.0, "m", "GNSS antenna left of the CG", -20.0, 20.0),
+    _float("vehicle.max_steering", 0.7, "rad", "steering limit; a sample beyond it is rejected", 0.001, 1.6),
+    # inputs
+    _str("topics.velocity", "/gnss/vel", "GNSS velocity topic"),
+    _str("topics.heading", "/gnss/heading", "GNSS heading topic"),
+    _str("topics.steering", "/steering_angle", "steering angle topic (rad, positive to the left)"),
+    _str("topics.velocity_type", "TwistStamped", "message type of topics.velocity",
+         ("geometry_msgs/msg/TwistStamped", "geometry_msgs/msg/TwistWithCovarianceStamped")),
+    _str("topics.heading_type", "QuaternionStamped", "message type of topics.heading (the yaw of its orientation)",
+         ("geometry_msgs/msg/QuaternionStamped", "sensor_msgs/msg/Imu")),
+    _str("topics.steering_type", "JointState", "message type of topics.steering (JointState: joint "
+         "steering.joint_name)", ("sensor_msgs/msg/JointState", "std_msgs/msg/Float64")),
+    _str("frames.velocity", "enu", "frame of the GNSS velocity: enu (linear.x/y = east/north) or ned "
+         "(north/east)", FRAMES),
+    _str("frames.heading", "enu", "frame of the GNSS heading: enu (ENU yaw) or ned (compass heading, clockwise "
+         "from north)", FRAMES),
+    _str("steering.joint_name", "front_steering", "joint of a sensor_msgs/JointState that carries the steering "
+         "angle"),
+    # outputs
+    _str("output.frame_id", "base_link", "header.frame_id of every output message (the body frame at the CG)"),
+    # filter structure (DESIGN.md section 1)
+    _str("ekf.discretization", "exact", "exact (zero-order hold) or euler (paper eq. 10)", DISCRETIZATIONS),
+    _str("ekf.stiffness_state", "log", "stiffness in the state as log or linear (paper)", STIFFNESS_STATES),
+    _str("ekf.measurement", "heading", "heading (z = [vy, psi]) or yaw_rate (paper, z = [vy, r])", MEASUREMENTS),
+    # noise (settable at run time; the initial values are used from the next ~/reset)
+    _floats("ekf.process_noise", (1.0e-4, 1.0e-4, 1.0e-6, 1.0e-6), "state units^2",
+            "diag Q for vy, r, Cf, Cr in the units of the state", read_only=False),
+    _floats("ekf.measurement_noise", (4.0e-4, 1.2e-5), "(m/s)^2, rad^2",
+            "diag R: vy, then heading (or r in (rad/s)^2 in yaw_rate mode)", read_only=False),
+    _float("ekf.heading_process_noise", 1.0e-8, "rad^2", "Q of the heading state (heading mode)", read_only=False),
+    _floats("ekf.initial_stiffness", (1000.0, 1000.0), "N/rad", "initial Cf, Cr (used from the next ~/reset)",
+            read_only=False),
+    _floats("ekf.initial_covariance", (1.0e-2, 1.0e-2, 4.0, 4.0), "state units^2",
+            "diag P0 for vy, r, Cf, Cr in the units of the state (used from the next ~/reset)", read_only=False),
+    _float("ekf.initial_heading_covariance", 1.0e-2, "rad^2", "P0 of the heading state (used from the next "
+           "~/reset)", read_only=False),
+    # filter limits
+    _float("ekf.min_speed", 0.3, "m/s", "below it, no stiffness update", 0.0, 20.0),
+    _floats("ekf.stiffness_bounds", (50.0, 1.0e6), "N/rad", "lower and upper clamp of Cf, Cr"),
+    _float("ekf.gate_threshold", 25.0, "", "Mahalanobis d^2 above which an update is gated"),
+    _int("ekf.max_gated", 5, "after this many consecutive gated epochs the next one is accepted", 0, 1000),
+    _float("ekf.max_interval", 2.0, "s", "a longer GNSS gap re-initialises the motion states", 0.001, 3600.0),
+    # diagnostics (evaluation.health.HealthThresholds, plus the publishing period and the latency log)
+    _float("diagnostics.stale_timeout", 1.0, "s", "time without a message before an input is reported stale "
+           "(ERROR)", 0.01, 3600.0, read_only=False),
+    _float("diagnostics.window", 10.0, "s", "span over which rejections, gating and excitation are judged",
+           0.1, 3600.0, read_only=False),
+    _float("diagnostics.converged_rel_std", 0.05, "", "relative 1-sigma of Cf and Cr below which they count as "
+           "converged", 1.0e-6, 10.0, read_only=False),
+    _float("diagnostics.min_steering_rms", 0.02, "rad", "steering RMS over the window needed for sufficient "
+           "excitation", 0.0, 1.6, read_only=False),
+    _float("diagnostics.min_yaw_rate_rms", 0.02, "rad/s", "yaw-rate RMS over the window needed for sufficient "
+           "excitation", 0.0, 10.0, read_only=False),
+    _int("diagnostics.min_window_epochs", 5, "fewer moving epochs in the window: excitation unknown (WARN)",
+         1, 100000, read_only=False),
+    _float("diagnostics.rate_window", 5.0, "s", "span of arrivals over which input rates are computed", 0.1,
+           3600.0, read_only=False),
+    _float("diagnostics.period", 1.0, "s", "time between /diagnostics messages", 0.01, 60.0),
+    _str("diagnostics.latency_log", "", "file to append 't latency_s' per published epoch to (empty: off)"),
+)
+
+#: dotted key -> row
+PARAMS: dict[str, Param] = {row.key: row for row in SCHEMA}
+if len(PARAMS) != len(SCHEMA):
+    raise ValueError("duplicate key in the parameter schema")
+
+
+def default_values() -> dict[str, Value]:
+    """Every key with its default (float lists as tuples)."""
+    return {row.key: row.default for row in SCHEMA}
+
+
+def is_ros_builtin(key: str) -> bool:
+    """Parameters of rclpy itself (``use_sim_time``, QoS overrides): not ours to check."""
+    return key in ROS_BUILTIN_KEYS or key.startswith(ROS_BUILTIN_PREFIXES)
+
+
+def unknown_key_message(key: str) -> str:
+    """One line naming an unknown key, with the nearest known keys (or the known ones of its namespace)."""
+    close = difflib.get_close_matches(key, PARAMS, n=3, cutoff=0.8)
+    if close:
+        return f"{key} is not a known parameter (did you mean {' or '.join(close)}?)"
+    namespace = key.partition(".")[0] + "."
+    same = [k for k in PARAMS if k.startswith(namespace)]
+    if same:
+        return f"{key} is not a known parameter (known {namespace}*: {', '.join(k.partition('.')[2] for k in same)})"
+    spaces = ", ".join(dict.fromkeys(k.partition(".")[0] + ".*" for k in PARAMS))
+    return f"{key} is not a known parameter (known: {spaces})"
