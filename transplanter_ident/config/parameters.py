@@ -53,7 +53,7 @@ class FilterOptions:
     min_speed: float = 0.3
     stiffness_bounds: tuple[float, float] = (50.0, 1.0e6)
     gate_threshold: float = 25.0  # Mahalanobis d^2 above which an update is gated
-    max_gated: int = 5  # after this many consecutive gated epochs, accept the next one
+    max_gated: int = 5  # this many consecutive gated epochs re-initialise the motion states
     max_interval: float = 2.0  # s; a longer gap re-initialises the motion states
     estimate_steering_offset: bool = True  # the steering-sensor offset as a filter state
     process_noise_units: str = "per_second"  # Q as a spectral density, or per GNSS step (old files)
@@ -112,9 +112,9 @@ class NoiseParams:
     steering_offset_initial_variance: P0 of the steering offset, rad^2 (0 when it is not estimated).
     """
 
-    process_noise: tuple[float, float, float, float] = (5.0e-4, 5.0e-4, 5.0e-6, 5.0e-6)
+    process_noise: tuple[float, float, float, float] = (1.0e-4, 1.0e-4, 1.0e-5, 1.0e-5)
     measurement_noise: tuple[float, float] = (4.0e-4, 1.2e-5)
-    heading_process_noise: float = 5.0e-8
+    heading_process_noise: float = 1.0e-8
     steering_offset_process_noise: float = 1.0e-8
     steering_offset_initial_variance: float = 1.2e-3
     initial_stiffness: tuple[float, float] = (1000.0, 1000.0)

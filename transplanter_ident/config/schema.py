@@ -20,7 +20,7 @@ import difflib
 from dataclasses import dataclass
 from typing import Any
 
-from transplanter_ident.config.parameters import DISCRETIZATIONS, MEASUREMENTS, STIFFNESS_STATES
+from transplanter_ident.config.parameters import DISCRETIZATIONS, MEASUREMENTS, NOISE_UNITS, STIFFNESS_STATES
 
 FRAMES = ("enu", "ned")
 KINDS = ("float", "int", "bool", "str", "float_list")
@@ -93,6 +93,10 @@ def _str(key: str, default: str, description: str, choices: tuple[str, ...] = ()
     return Param(key, "str", default, "", description, choices=choices)
 
 
+def _bool(key: str, default: bool, description: str) -> Param:
+    return Param(key, "bool", default, "", description)
+
+
 def _floats(key: str, default: tuple[float, ...], unit: str, description: str, *, read_only: bool = True) -> Param:
     return Param(key, "float_list", default, unit, description, read_only=read_only)
 
@@ -106,6 +110,13 @@ SCHEMA: tuple[Param, ...] = (
     _float("vehicle.antenna_x", 0.0, "m", "GNSS antenna ahead of the CG", -20.0, 20.0),
     _float("vehicle.antenna_y", 0.0, "m", "GNSS antenna left of the CG", -20.0, 20.0),
     _float("vehicle.max_steering", 0.7, "rad", "steering limit; a sample beyond it is rejected", 0.001, 1.6),
+    _float("vehicle.steering_offset", 0.0, "rad", "steering-sensor offset, wheel angle = sensor - offset: the "
+           "initial value when estimated (ekf.estimate_steering_offset), else the fixed one", -0.3, 0.3),
+    # GNSS timing
+    _float("gnss.delay", 0.0, "s", "the GNSS velocity and heading stamped t describe the motion at t - delay "
+           "(drivers that stamp on arrival: about their latency)", -1.0, 10.0),
+    _float("gnss.pairing_tolerance", 0.05, "s", "the most the stamps of a velocity and a heading of one GNSS "
+           "epoch may differ", 0.001, 1.0),
     # inputs
     _str("topics.velocity", "/gnss/vel", "GNSS velocity topic"),
     _str("topics.heading", "/gnss/heading", "GNSS heading topic"),
@@ -129,11 +140,21 @@ SCHEMA: tuple[Param, ...] = (
     _str("ekf.stiffness_state", "log", "stiffness in the state as log or linear (paper)", STIFFNESS_STATES),
     _str("ekf.measurement", "heading", "heading (z = [vy, psi]) or yaw_rate (paper, z = [vy, r])", MEASUREMENTS),
     # noise (settable at run time; the initial values are used from the next ~/reset)
-    _floats("ekf.process_noise", (1.0e-4, 1.0e-4, 1.0e-6, 1.0e-6), "state units^2",
-            "diag Q for vy, r, Cf, Cr in the units of the state", read_only=False),
+    _floats("ekf.process_noise", (1.0e-4, 1.0e-4, 1.0e-5, 1.0e-5), "state units^2/s",
+            "diag Q for vy, r, Cf, Cr as a spectral density (each GNSS interval dt adds Q dt), in the units "
+            "of the state; per step with ekf.process_noise_units: per_step", read_only=False),
+    _str("ekf.process_noise_units", "per_second", "per_second (Q a spectral density: one file fits any GNSS "
+         "rate) or per_step (per GNSS interval of ekf.process_noise_step, as before version 0.2)", NOISE_UNITS),
+    _float("ekf.process_noise_step", 0.2, "s", "the GNSS interval per_step values were tuned for", 0.001, 10.0),
     _floats("ekf.measurement_noise", (4.0e-4, 1.2e-5), "(m/s)^2, rad^2",
             "diag R: vy, then heading (or r in (rad/s)^2 in yaw_rate mode)", read_only=False),
-    _float("ekf.heading_process_noise", 1.0e-8, "rad^2", "Q of the heading state (heading mode)", read_only=False),
+    _float("ekf.heading_process_noise", 1.0e-8, "rad^2/s", "Q density of the heading state (heading mode)",
+           read_only=False),
+    _bool("ekf.estimate_steering_offset", True, "estimate the steering-sensor offset as a filter state"),
+    _float("ekf.steering_offset_process_noise", 1.0e-8, "rad^2/s", "Q density of the steering offset",
+           read_only=False),
+    _float("ekf.steering_offset_initial_variance", 1.2e-3, "rad^2", "P0 of the steering offset (2 deg 1-sigma; "
+           "used from the next ~/reset)", read_only=False),
     _floats("ekf.initial_stiffness", (1000.0, 1000.0), "N/rad", "initial Cf, Cr (used from the next ~/reset)",
             read_only=False),
     _floats("ekf.initial_covariance", (1.0e-2, 1.0e-2, 4.0, 4.0), "state units^2",
@@ -144,8 +165,21 @@ SCHEMA: tuple[Param, ...] = (
     _float("ekf.min_speed", 0.3, "m/s", "below it, no stiffness update", 0.0, 20.0),
     _floats("ekf.stiffness_bounds", (50.0, 1.0e6), "N/rad", "lower and upper clamp of Cf, Cr"),
     _float("ekf.gate_threshold", 25.0, "", "Mahalanobis d^2 above which an update is gated"),
-    _int("ekf.max_gated", 5, "after this many consecutive gated epochs the next one is accepted", 0, 1000),
+    _int("ekf.max_gated", 5, "this many consecutive gated epochs re-initialise the motion states (never force "
+         "a stiffness update)", 1, 1000),
     _float("ekf.max_interval", 2.0, "s", "a longer GNSS gap re-initialises the motion states", 0.001, 3600.0),
+    # the tire's linear range and stiffness changes (DESIGN.md section 7)
+    _bool("ekf.linear_range_check", True, "hold the stiffness and offset (update the motion only) where the "
+          "measured slip angle or lateral acceleration leaves the linear tire range"),
+    _float("ekf.max_slip_angle", 0.05, "rad", "front or rear slip angle beyond which the tire counts as "
+           "nonlinear", 1.0e-4, 1.0),
+    _float("ekf.max_lateral_acceleration", 2.0, "m/s^2", "lateral acceleration beyond which the tire counts as "
+           "nonlinear", 0.01, 50.0),
+    _bool("ekf.change_detection", True, "CUSUM test of the innovations for a stiffness change (surface)"),
+    _float("ekf.change_scale", 4.0, "", "innovation variance ratio the change test looks for", 1.01, 100.0),
+    _float("ekf.change_threshold", 12.0, "", "CUSUM alarm level (log-likelihood ratio)", 1.0, 1000.0),
+    _float("ekf.change_inflation", 0.09, "(ln C)^2", "stiffness variance at least restored at an alarm "
+           "(0.09: 30 % 1-sigma)", 1.0e-4, 10.0),
     # diagnostics (evaluation.health.HealthThresholds, plus the publishing period and the latency log)
     _float("diagnostics.stale_timeout", 1.0, "s", "time without a message before an input is reported stale "
            "(ERROR)", 0.01, 3600.0, read_only=False),

@@ -6,6 +6,8 @@ ln C (``log``) or C (``linear``); b is the steering-sensor offset (wheel angle =
 prediction uses :func:`model.discretize` (eq. 10 or exact ZOH, Jacobian eq. 13 with the A23
 erratum fixed) driven by the steering ramp minus b. The measurement holds the lever arm,
 h(x) = [vy + antenna_x r, psi], and the update is eq. 12 in Joseph form with a Mahalanobis gate.
+The body-frame vy is the GNSS velocity turned by the *measured* heading, so its error holds
+-vx e_psi: R is full, [[R_v + vx^2 R_psi, -vx R_psi], [-vx R_psi, R_psi]] (R_v, R_psi as configured).
 
 Beyond the paper (DESIGN.md section 7):
 
@@ -283,10 +285,11 @@ def make_kernels(heading):
 
     @inline_kernel
     def beyond_linear_range(vehicle, settings, speed, steering, offset, vy, yaw_rate, out):
-        """Whether the measured slip angles or lateral acceleration leave the linear tire's range.
+        """Whether the slip angles or the lateral acceleration leave the linear tire's range.
 
-        From the measurement (vy at the CG, the interval-mean r), not the prediction: a wrong
-        stiffness must not make the filter believe the tires are saturated.
+        From the last estimate of vy and r (which the measurements keep close to the truth), not
+        from the prediction (a wrong stiffness must not make the tires look saturated) nor from
+        the differenced yaw rate (its noise would select the epochs).
         """
         lf, lr = vehicle[VEH_LF], vehicle[VEH_LR]
         slip_f = steering - offset - (vy + lf * yaw_rate) / speed
@@ -348,7 +351,7 @@ def make_kernels(heading):
         1. Reject a non-finite epoch or a stamp not after the previous one (nothing changes).
         2. Initialise, or re-initialise after a gap, at low speed or reversing (motion from z).
         3. Predict x and the open-loop model over dt (eq. 12), P = F P F^T + Q dt.
-        4. Innovation, S and NIS with the lever arm in h(x); the CUSUM change test.
+        4. Innovation, S and NIS with the lever arm in h(x) and the heading error in vy; the CUSUM test.
         5. Gate; after max_gated gated epochs in a row, re-initialise the motion states.
         6. Joseph update (motion only outside the linear tire range); clamp the stiffness.
         7. Roll back if anything became non-finite.
@@ -386,6 +389,9 @@ def make_kernels(heading):
             ws[W_VEC, V_BACKUP_MODEL, i] = model[i]
         cusum_before = memo[M_CUSUM]
 
+        # the tire's range from the latest estimate of the motion (noisy differenced r would select epochs by noise)
+        nonlinear = beyond_linear_range(vehicle, settings, speed, steering, x[nb], x[X_VY], x[X_R], out)
+
         # 3.
         psi_model_before = model[X_PSI]
         predict_n(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
@@ -401,6 +407,9 @@ def make_kernels(heading):
                + r_noise[Z_VY])
         s01 = p[X_VY, h1] + antenna_x * p[X_R, h1]
         s11 = p[h1, h1] + r_noise[Z_SECOND]
+        if heading:  # vy is the GNSS velocity turned by the measured heading: e_vy = e_v - vx e_psi
+            s00 += speed * speed * r_noise[Z_SECOND]
+            s01 -= speed * r_noise[Z_SECOND]
         det = s00 * s11 - s01 * s01
         if not det > 0.0:  # S lost positive definiteness (or is NaN): treat as divergence
             det = math.nan
@@ -411,8 +420,6 @@ def make_kernels(heading):
         out[O_S01] = s01
         out[O_S11] = s11
         out[O_NIS] = nis
-        vy_cg = vy_antenna - antenna_x * yaw_rate
-        nonlinear = beyond_linear_range(vehicle, settings, speed, steering, x[nb], vy_cg, yaw_rate, out)
 
         # 5.
         if nis > settings[S_GATE] and _finite(nis):
