@@ -308,7 +308,11 @@ def test_update_is_the_textbook_kalman_update(sequence, name):
     h[1, 2 if heading else 1] = 1.0
     z = np.array([epoch.antenna_lateral_velocity, epoch.heading if heading else epoch.yaw_rate])
     innovation = z - h @ x_pred
-    s = h @ p_pred @ h.T + np.diag(arrays.measurement_noise)
+    r_v, r_2 = arrays.measurement_noise
+    # vy is the GNSS velocity turned by the measured heading: its error holds -vx e_psi (heading mode)
+    vx = epoch.speed
+    r_full = np.array([[r_v + vx * vx * r_2, -vx * r_2], [-vx * r_2, r_2]]) if heading else np.diag([r_v, r_2])
+    s = h @ p_pred @ h.T + r_full
     gain = p_pred @ h.T @ np.linalg.inv(s)
     x_new = x_pred + gain @ innovation
     p_new = (np.eye(n) - gain @ h) @ p_pred
@@ -365,9 +369,10 @@ def test_set_noise_keeps_the_state_and_changes_q_and_r(sequence):
         d_q = np.array(noise.process_noise) - np.array(base.process_noise)
         d_r = np.array(noise.measurement_noise) - np.array(base.measurement_noise)
         dt = epochs[INJECT].t - epochs[INJECT - 1].t
-        assert s00_a - s00_b == pytest.approx(d_q[0] * dt + d_r[0], rel=1e-9, abs=1e-15)
+        vx = epochs[INJECT].speed  # vy's error holds -vx e_psi: R_psi enters S00 and S01 too
+        assert s00_a - s00_b == pytest.approx(d_q[0] * dt + d_r[0] + vx * vx * d_r[1], rel=1e-9, abs=1e-15)
         assert s11_a - s11_b == pytest.approx(d_r[1], rel=1e-9, abs=1e-15)  # heading's Q is unchanged
-        assert s01_a == pytest.approx(s01_b, rel=1e-9, abs=1e-15)
+        assert s01_a - s01_b == pytest.approx(-vx * d_r[1], rel=1e-9, abs=1e-15)
         assert a.cornering_stiffness_front != b.cornering_stiffness_front
 
 

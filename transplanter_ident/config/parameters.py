@@ -64,7 +64,8 @@ class FilterOptions:
     change_detection: bool = True  # the surface-change CUSUM on the innovations
     change_scale: float = 4.0  # innovation variance ratio the surface-change CUSUM tests for
     change_threshold: float = 12.0  # CUSUM alarm level (log-likelihood ratio)
-    change_inflation: float = 0.09  # stiffness variance added at an alarm, (ln C)^2: 30 % 1-sigma
+    change_process_noise: float = 1.0e-2  # stiffness Q density after an alarm, (ln C)^2/s
+    change_hold: float = 5.0  # s the raised density lasts after an alarm
 
     def __post_init__(self) -> None:
         _check_choice("ekf.discretization", self.discretization, DISCRETIZATIONS)
@@ -80,7 +81,8 @@ class FilterOptions:
         if not self.max_interval > 0.0:
             raise ValueError(f"ekf.max_interval must be > 0, got {self.max_interval}")
         _check_choice("ekf.process_noise_units", self.process_noise_units, NOISE_UNITS)
-        for key in ("process_noise_step", "max_slip_angle", "max_lateral_acceleration", "change_inflation"):
+        for key in ("process_noise_step", "max_slip_angle", "max_lateral_acceleration", "change_process_noise",
+                    "change_hold"):
             value = getattr(self, key)
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"ekf.{key} must be a positive finite number, got {value!r}")

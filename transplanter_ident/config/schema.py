@@ -178,8 +178,9 @@ SCHEMA: tuple[Param, ...] = (
     _bool("ekf.change_detection", True, "CUSUM test of the innovations for a stiffness change (surface)"),
     _float("ekf.change_scale", 4.0, "", "innovation variance ratio the change test looks for", 1.01, 100.0),
     _float("ekf.change_threshold", 12.0, "", "CUSUM alarm level (log-likelihood ratio)", 1.0, 1000.0),
-    _float("ekf.change_inflation", 0.09, "(ln C)^2", "stiffness variance at least restored at an alarm "
-           "(0.09: 30 % 1-sigma)", 1.0e-4, 10.0),
+    _float("ekf.change_process_noise", 1.0e-2, "(ln C)^2/s", "stiffness Q density (relative) for change_hold "
+           "after a change alarm", 1.0e-8, 10.0),
+    _float("ekf.change_hold", 5.0, "s", "how long the raised stiffness Q lasts after a change alarm", 0.01, 600.0),
     # diagnostics (evaluation.health.HealthThresholds, plus the publishing period and the latency log)
     _float("diagnostics.stale_timeout", 1.0, "s", "time without a message before an input is reported stale "
            "(ERROR)", 0.01, 3600.0, read_only=False),

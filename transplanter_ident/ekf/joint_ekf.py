@@ -47,7 +47,8 @@ from transplanter_ident.ekf.layout import (
     O_VY_MODEL,
     S_ANTENNA_X,
     S_CHANGE_DETECTION,
-    S_CHANGE_INFLATION,
+    S_CHANGE_HOLD,
+    S_CHANGE_Q,
     S_CUSUM_CAP,
     S_CUSUM_SCALE,
     S_CUSUM_THRESHOLD,
@@ -161,7 +162,8 @@ class FilterArrays:
         settings[S_CUSUM_SCALE] = options.change_scale
         settings[S_CUSUM_THRESHOLD] = options.change_threshold
         settings[S_CUSUM_CAP] = 0.5 * options.change_threshold  # one outlier alone never raises an alarm
-        settings[S_CHANGE_INFLATION] = options.change_inflation
+        settings[S_CHANGE_Q] = options.change_process_noise
+        settings[S_CHANGE_HOLD] = options.change_hold
         settings[S_LINEAR_RANGE] = 1.0 if options.linear_range_check else 0.0
         settings[S_CHANGE_DETECTION] = 1.0 if options.change_detection else 0.0
         q, p0 = _state_diagonals(noise, options)

@@ -49,6 +49,7 @@ from transplanter_ident.ekf.layout import (
     G_K0,
     G_K1,
     HEADING_STATES,
+    M_ADAPT_UNTIL,
     M_CUSUM,
     M_GATED,
     M_INITIALISED,
@@ -82,7 +83,8 @@ from transplanter_ident.ekf.layout import (
     O_VY_MODEL,
     S_ANTENNA_X,
     S_CHANGE_DETECTION,
-    S_CHANGE_INFLATION,
+    S_CHANGE_HOLD,
+    S_CHANGE_Q,
     S_CUSUM_CAP,
     S_CUSUM_SCALE,
     S_CUSUM_THRESHOLD,
@@ -231,8 +233,12 @@ def make_kernels(heading):
             model[i] = ws[W_VEC, V_NEW_MODEL, i]
 
     @inline_kernel
-    def propagate_covariance(p, q, dt, ws):
-        """P = F P F^T + Q dt, F = [[F_motion], [0, I]]: the parameter states are random walks, Q a density."""
+    def propagate_covariance(p, q, dt, adapting, settings, scale, ws):
+        """P = F P F^T + Q dt, F = [[F_motion], [0, I]]: the parameter states are random walks, Q a density.
+
+        While ``adapting`` (after a change alarm) the stiffness density is at least the raised one
+        (relative: ``scale`` = dC/dtheta of each stiffness, 1 in log mode).
+        """
         for i in range(nd):
             for j in range(n):
                 acc = 0.0
@@ -250,7 +256,10 @@ def make_kernels(heading):
                 p[i, j] = ws[W_TMP, i, j]
                 p[j, i] = ws[W_TMP, i, j]
         for i in range(n):
-            p[i, i] += q[i] * dt
+            density = q[i]
+            if adapting and (i == nf or i == nr):
+                density = max(density, settings[S_CHANGE_Q] * scale[i - nf] * scale[i - nf])
+            p[i, i] += density * dt
 
     @inline_kernel
     def joseph_update(x, p, e0, e1, s00, s01, s11, det, antenna_x, motion_only, ws):
@@ -304,20 +313,19 @@ def make_kernels(heading):
         return abs(slip_f) > limit or abs(slip_r) > limit or abs(lateral_acceleration) > settings[S_MAX_LAT_ACC]
 
     @inline_kernel
-    def detect_change(x, p, memo, settings, nis, out):
+    def detect_change(memo, settings, t, nis, out):
         """CUSUM of the log-likelihood ratio of a variance scale s of the innovations (chi^2_2 NIS).
 
-        l = -ln s + NIS (1 - 1/s) / 2, capped; an alarm at g > threshold raises the stiffness
-        variance to at least the inflation level (a surface change; never beyond it, so repeated
-        alarms cannot make it grow without bound) and restarts the sum.
+        l = -ln s + NIS (1 - 1/s) / 2, capped; an alarm at g > threshold (a surface change) opens a
+        window of ``change_hold`` s in which the stiffness random walk runs at the raised density
+        ``change_process_noise``, so the estimate moves to the new surface over several epochs
+        instead of one large, badly linearised step; the sum restarts.
         """
         scale = settings[S_CUSUM_SCALE]
         llr = min(-math.log(scale) + 0.5 * nis * (1.0 - 1.0 / scale), settings[S_CUSUM_CAP])
         g = max(0.0, memo[M_CUSUM] + llr)
         if g > settings[S_CUSUM_THRESHOLD]:
-            for k in range(2):
-                c, dc = stiffness(x, settings, k)
-                p[nf + k, nf + k] = max(p[nf + k, nf + k], settings[S_CHANGE_INFLATION] * dc * dc)
+            memo[M_ADAPT_UNTIL] = t + settings[S_CHANGE_HOLD]
             out[O_CHANGE] = 1.0
             g = 0.0
         memo[M_CUSUM] = g
@@ -397,7 +405,10 @@ def make_kernels(heading):
         predict_n(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
         r_model = (model[X_PSI] - psi_model_before) / dt if heading else model[X_R]
         vy_model = model[X_VY]
-        propagate_covariance(p, q, dt, ws)
+        adapting = t <= memo[M_ADAPT_UNTIL]
+        scale_f = 1.0 if settings[S_LOG] > 0.5 else x[nf]
+        scale_r = 1.0 if settings[S_LOG] > 0.5 else x[nr]
+        propagate_covariance(p, q, dt, adapting, settings, (scale_f, scale_r), ws)
 
         # 4.
         antenna_x = settings[S_ANTENNA_X]
@@ -434,8 +445,8 @@ def make_kernels(heading):
             if nonlinear:
                 status = StepStatus.NONLINEAR
             joseph_update(x, p, e0, e1, s00, s01, s11, det, antenna_x, nonlinear, ws)
-        if not nonlinear and settings[S_CHANGE_DETECTION] > 0.5:
-            detect_change(x, p, memo, settings, nis, out)
+            if not nonlinear and settings[S_CHANGE_DETECTION] > 0.5:  # gated outliers never raise an alarm
+                detect_change(memo, settings, t, nis, out)
         low, high = settings[S_LOW], settings[S_HIGH]
         x[nf] = min(max(x[nf], low), high)
         x[nr] = min(max(x[nr], low), high)
