@@ -46,8 +46,8 @@ sys.path.insert(0, str(ROOT))
 
 import transplanter_ident.ekf.kernels as ekf  # noqa: E402
 from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams  # noqa: E402
+from transplanter_ident.ekf.layout import N_MEMO, N_MODEL  # noqa: E402
 from transplanter_ident.tuning.problem import batch_objective  # noqa: E402
-from transplanter_ident.ekf.layout import N_MEMO, N_MODEL
 
 REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "bench" / "ekf_reference.c"
 TARGET_RATIO = 2.0

@@ -25,8 +25,8 @@ from transplanter_ident.config.params_file import (
     load_params,
     params_to_flat,
     read_params_file,
-    write_params_yaml,
 )
+from transplanter_ident.config.params_writer import write_params_yaml
 from transplanter_ident.files import OutputError
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -36,7 +36,8 @@ from transplanter_ident.cli.plots import plot_convergence, plot_model_output, pl
 from transplanter_ident.cli.tuner import progress_printer
 from transplanter_ident.cli.util import CliError, cli_main
 from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams
-from transplanter_ident.config.params_file import EstimatorParams, load_params, write_params_yaml
+from transplanter_ident.config.params_file import EstimatorParams, load_params
+from transplanter_ident.config.params_writer import write_params_yaml
 from transplanter_ident.ekf.joint_ekf import run_sequence
 from transplanter_ident.ekf.layout import O_CF, O_CR, O_STATUS, StepStatus
 from transplanter_ident.ekf.model import discrete_matrices

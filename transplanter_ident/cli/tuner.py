@@ -27,7 +27,8 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from transplanter_ident.cli.util import CliError, cli_main
-from transplanter_ident.config.params_file import EstimatorParams, load_params, write_params_yaml
+from transplanter_ident.config.params_file import EstimatorParams, load_params
+from transplanter_ident.config.params_writer import write_params_yaml
 from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.tuning.problem import OBJECTIVES
 from transplanter_ident.tuning.pso import ALGORITHMS, IterationRecord

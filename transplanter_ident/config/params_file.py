@@ -23,7 +23,6 @@ This module does not import rclpy.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import re
 from collections.abc import Mapping, Sequence
@@ -43,7 +42,6 @@ from transplanter_ident.config.schema import (
     is_ros_builtin,
     unknown_key_message,
 )
-from transplanter_ident.files import atomic_write_text
 
 WILDCARD = "/**"
 
@@ -146,7 +144,7 @@ DATACLASS_KEYS = frozenset(f"{ns}.{name}" for ns, classes in _SECTIONS.items() f
 NODE_ONLY_KEYS = tuple(row.key for row in SCHEMA if row.key not in DATACLASS_KEYS)
 
 
-def _is_number(value: Any) -> bool:
+def is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
@@ -162,9 +160,9 @@ def _convert_scalar(row: Param, value: Any) -> Any:
         if not isinstance(value, bool):
             raise ParamsError(f"{key} must be true or false, got {value!r}", key)
         return value
-    if row.kind == "int" and not (_is_number(value) and isinstance(value, int)):
+    if row.kind == "int" and not (is_number(value) and isinstance(value, int)):
         raise ParamsError(f"{key} must be an integer, got {value!r}", key)
-    if not _is_number(value):
+    if not is_number(value):
         raise ParamsError(f"{key} must be a number, got {value!r}", key)
     number = value if row.kind == "int" else float(value)
     if row.has_range and not row.low <= number <= row.high:
@@ -187,7 +185,7 @@ def convert_value(key: str, value: Any) -> Any:
     if len(value) != row.length:
         raise ParamsError(f"{key} must have {row.length} entries, got {len(value)}", key)
     for entry in value:
-        if not _is_number(entry):
+        if not is_number(entry):
             raise ParamsError(f"{key} entries must be numbers, got {entry!r}", key)
     return tuple(float(entry) for entry in value)
 
@@ -336,74 +334,3 @@ def load_params(paths: Sequence[str | Path], node_name: str = "estimator") -> Es
         raise ParamsError(f"{', '.join(map(str, paths))}: {exc}", exc.key) from None
 
 
-def _format_scalar(key: str, value: Any, *, as_int: bool = False) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if _is_number(value):
-        if as_int and isinstance(value, int):
-            return str(value)
-        number = float(value)
-        if not math.isfinite(number):
-            raise ParamsError(f"{key} must be finite, got {value!r}", key)
-        text = repr(number)
-        if "e" in text and "." not in text:
-            text = text.replace("e", ".0e")
-        return text
-    if isinstance(value, str):
-        plain = re.fullmatch(r"[A-Za-z_/~][A-Za-z0-9_/.~-]*", value) is not None
-        if plain and yaml.load(value, Loader=_Loader) == value:
-            return value
-        return json.dumps(value)
-    raise ParamsError(f"{key} has an unsupported type {type(value).__name__}", key)
-
-
-def _format_value(key: str, value: Any) -> str:
-    if isinstance(value, (list, tuple)):
-        if not value:
-            raise ParamsError(f"{key} must not be an empty list (rcl cannot type it)", key)
-        kinds = {"number" if _is_number(v) else type(v).__name__ for v in value}
-        if len(kinds) != 1 or kinds - {"number", "str", "bool"}:
-            raise ParamsError(f"{key} must be a list of numbers, strings or booleans, not mixed", key)
-        return "[" + ", ".join(_format_scalar(key, v) for v in value) + "]"
-    return _format_scalar(key, value, as_int=key in INT_KEYS)
-
-
-def dump_params_yaml(flat: Mapping[str, Any], header_comment: str = "", node_name: str = "estimator") -> str:
-    """Render flat dotted keys as a nested ``node_name: ros__parameters:`` YAML document."""
-    tree: dict[str, Any] = {}
-    for key, value in flat.items():
-        node = tree
-        *parents, leaf = key.split(".")
-        for part in parents:
-            child = node.setdefault(part, {})
-            if not isinstance(child, dict):
-                raise ParamsError(f"{key} clashes with the parameter {part}", key)
-            node = child
-        if leaf in node:
-            raise ParamsError(f"{key} clashes with a parameter namespace of the same name", key)
-        node[leaf] = _format_value(key, value)
-    lines = [f"# {line}".rstrip() for line in header_comment.splitlines()]
-    lines += [f"{node_name}:", "  ros__parameters:"]
-
-    def emit(node: dict[str, Any], indent: int) -> None:
-        for name, value in node.items():
-            if isinstance(value, dict):
-                lines.append(f"{' ' * indent}{name}:")
-                emit(value, indent + 2)
-            else:
-                lines.append(f"{' ' * indent}{name}: {value}")
-
-    emit(tree, 4)
-    return "\n".join(lines) + "\n"
-
-
-def write_params_yaml(
-    path: str | Path, flat: Mapping[str, Any], header_comment: str, node_name: str = "estimator"
-) -> None:
-    """Validate ``flat`` and write it atomically (temp file in the same directory, then rename).
-
-    Every number is written as a float except integer parameters (``ekf.max_gated``); lists are in
-    flow style. On any failure the temp file is removed and the target is left untouched.
-    """
-    flat_to_params(flat)
-    atomic_write_text(path, dump_params_yaml(flat, header_comment, node_name))

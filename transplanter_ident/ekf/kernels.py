@@ -34,6 +34,7 @@ import math
 
 import numpy as np
 
+from transplanter_ident.ekf.adaptation import beyond_linear_range, detect_change
 from transplanter_ident.ekf.layout import (
     DIVERGENCE_PENALTY,
     E_PSI,
@@ -44,10 +45,6 @@ from transplanter_ident.ekf.layout import (
     E_VY,
     E_YAW_RATE,
     EULER,
-    G_HP0,
-    G_HP1,
-    G_K0,
-    G_K1,
     HEADING_STATES,
     M_ADAPT_UNTIL,
     M_CUSUM,
@@ -61,13 +58,10 @@ from transplanter_ident.ekf.layout import (
     N_OUTPUTS,
     O_CF,
     O_CF_STD,
-    O_CHANGE,
     O_CORRELATION,
-    O_CUSUM,
     O_DT,
     O_E0,
     O_E1,
-    O_LAT_ACC,
     O_NIS,
     O_OFFSET,
     O_OFFSET_STD,
@@ -76,27 +70,17 @@ from transplanter_ident.ekf.layout import (
     O_S00,
     O_S01,
     O_S11,
-    O_SLIP_F,
-    O_SLIP_R,
     O_STATUS,
     O_VY,
     O_VY_MODEL,
     S_ANTENNA_X,
     S_CHANGE_DETECTION,
-    S_CHANGE_HOLD,
-    S_CHANGE_Q,
-    S_CUSUM_CAP,
-    S_CUSUM_SCALE,
-    S_CUSUM_THRESHOLD,
     S_GATE,
     S_HIGH,
-    S_LINEAR_RANGE,
     S_LOG,
     S_LOW,
     S_MAX_GATED,
     S_MAX_INTERVAL,
-    S_MAX_LAT_ACC,
-    S_MAX_SLIP,
     S_METHOD,
     S_MIN_SPEED,
     S_P0_PSI,
@@ -106,15 +90,11 @@ from transplanter_ident.ekf.layout import (
     V_BACKUP_X,
     V_NEW_MODEL,
     V_NEW_X,
-    VEH_LF,
-    VEH_LR,
     W_BACKUP_P,
     W_DE_F,
     W_DE_R,
     W_E,
     W_F,
-    W_GAIN,
-    W_TMP,
     W_VEC,
     WORK_SIZE,
     WORK_SLOTS,
@@ -127,6 +107,7 @@ from transplanter_ident.ekf.layout import (
     StepStatus,
 )
 from transplanter_ident.ekf.model import discretize_heading, discretize_yaw_rate
+from transplanter_ident.ekf.update import make_update
 from transplanter_ident.epochs.frames import wrap_angle
 from transplanter_ident.jit import inline_kernel, sized_kernel
 
@@ -150,6 +131,7 @@ def make_kernels(heading):
     nf, nr, nb = nd, nd + 1, nd + 2  # theta_f, theta_r, steering offset
     h1 = X_PSI if heading else X_R  # second measured state
     discretize_n = discretize_heading if heading else discretize_yaw_rate
+    propagate_covariance, joseph_update = make_update(n, nd, h1)
 
     @inline_kernel
     def reset_motion(x, p, model, settings, vy_antenna, psi, yaw_rate):
@@ -231,105 +213,6 @@ def make_kernels(heading):
         for i in range(nd):
             x[i] = ws[W_VEC, V_NEW_X, i]
             model[i] = ws[W_VEC, V_NEW_MODEL, i]
-
-    @inline_kernel
-    def propagate_covariance(p, q, dt, adapting, settings, scale, ws):
-        """P = F P F^T + Q dt, F = [[F_motion], [0, I]]: the parameter states are random walks, Q a density.
-
-        While ``adapting`` (after a change alarm) the stiffness density is at least the raised one
-        (relative: ``scale`` = dC/dtheta of each stiffness, 1 in log mode).
-        """
-        for i in range(nd):
-            for j in range(n):
-                acc = 0.0
-                for k in range(n):
-                    acc += ws[W_F, i, k] * p[k, j]
-                ws[W_TMP, i, j] = acc
-        for i in range(nd):
-            for j in range(i, nd):
-                acc = 0.0
-                for k in range(n):
-                    acc += ws[W_TMP, i, k] * ws[W_F, j, k]
-                p[i, j] = acc
-                p[j, i] = acc
-            for j in range(nd, n):
-                p[i, j] = ws[W_TMP, i, j]
-                p[j, i] = ws[W_TMP, i, j]
-        for i in range(n):
-            density = q[i]
-            if adapting and (i == nf or i == nr):
-                density = max(density, settings[S_CHANGE_Q] * scale[i - nf] * scale[i - nf])
-            p[i, i] += density * dt
-
-    @inline_kernel
-    def joseph_update(x, p, e0, e1, s00, s01, s11, det, antenna_x, motion_only, ws):
-        """X += K e; P = (I - K H) P (I - K H)^T + K R K^T with H = [[1, antenna_x, 0...], e_h1].
-
-        Evaluated expanded, P - K HP - (K HP)^T + K S K^T with S = H P H^T + R: the same function of
-        K (so valid for any gain), in O(n^2). ``motion_only`` zeroes the parameter rows of K (a
-        Schmidt update: the stiffness and offset keep their estimate and take the right covariance).
-        """
-        i00, i01, i11 = s11 / det, -s01 / det, s00 / det
-        for i in range(n):
-            hp0, hp1 = p[X_VY, i] + antenna_x * p[X_R, i], p[h1, i]
-            k0 = hp0 * i00 + hp1 * i01
-            k1 = hp0 * i01 + hp1 * i11
-            if motion_only and i >= nd:
-                k0, k1 = 0.0, 0.0
-            ws[W_GAIN, G_K0, i] = k0
-            ws[W_GAIN, G_K1, i] = k1
-            ws[W_GAIN, G_HP0, i] = hp0
-            ws[W_GAIN, G_HP1, i] = hp1
-            x[i] += k0 * e0 + k1 * e1
-        for i in range(n):
-            k0, k1 = ws[W_GAIN, G_K0, i], ws[W_GAIN, G_K1, i]
-            hp0, hp1 = ws[W_GAIN, G_HP0, i], ws[W_GAIN, G_HP1, i]
-            ks0 = k0 * s00 + k1 * s01 - hp0
-            ks1 = k0 * s01 + k1 * s11 - hp1
-            for j in range(i, n):
-                acc = (p[i, j] - k0 * ws[W_GAIN, G_HP0, j] - k1 * ws[W_GAIN, G_HP1, j]
-                       + ks0 * ws[W_GAIN, G_K0, j] + ks1 * ws[W_GAIN, G_K1, j])
-                p[i, j] = acc
-                p[j, i] = acc
-
-    @inline_kernel
-    def beyond_linear_range(vehicle, settings, speed, steering, offset, vy, yaw_rate, out):
-        """Whether the slip angles or the lateral acceleration leave the linear tire's range.
-
-        From the last estimate of vy and r (which the measurements keep close to the truth), not
-        from the prediction (a wrong stiffness must not make the tires look saturated) nor from
-        the differenced yaw rate (its noise would select the epochs).
-        """
-        lf, lr = vehicle[VEH_LF], vehicle[VEH_LR]
-        slip_f = steering - offset - (vy + lf * yaw_rate) / speed
-        slip_r = (lr * yaw_rate - vy) / speed
-        lateral_acceleration = speed * yaw_rate
-        out[O_SLIP_F] = slip_f
-        out[O_SLIP_R] = slip_r
-        out[O_LAT_ACC] = lateral_acceleration
-        if settings[S_LINEAR_RANGE] < 0.5:
-            return False
-        limit = settings[S_MAX_SLIP]
-        return abs(slip_f) > limit or abs(slip_r) > limit or abs(lateral_acceleration) > settings[S_MAX_LAT_ACC]
-
-    @inline_kernel
-    def detect_change(memo, settings, t, nis, out):
-        """CUSUM of the log-likelihood ratio of a variance scale s of the innovations (chi^2_2 NIS).
-
-        l = -ln s + NIS (1 - 1/s) / 2, capped; an alarm at g > threshold (a surface change) opens a
-        window of ``change_hold`` s in which the stiffness random walk runs at the raised density
-        ``change_process_noise``, so the estimate moves to the new surface over several epochs
-        instead of one large, badly linearised step; the sum restarts.
-        """
-        scale = settings[S_CUSUM_SCALE]
-        llr = min(-math.log(scale) + 0.5 * nis * (1.0 - 1.0 / scale), settings[S_CUSUM_CAP])
-        g = max(0.0, memo[M_CUSUM] + llr)
-        if g > settings[S_CUSUM_THRESHOLD]:
-            memo[M_ADAPT_UNTIL] = t + settings[S_CHANGE_HOLD]
-            out[O_CHANGE] = 1.0
-            g = 0.0
-        memo[M_CUSUM] = g
-        out[O_CUSUM] = g
 
     @inline_kernel
     def healthy(x, p, r_model, vy_model, nis):

@@ -30,7 +30,8 @@ from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-from transplanter_ident.config.params_file import FRAMES, EstimatorParams
+from transplanter_ident.config.params_file import EstimatorParams
+from transplanter_ident.config.schema import FRAMES
 from transplanter_ident.epochs.epoch import Epoch, Rejection
 from transplanter_ident.epochs.frames import (
     body_velocity,

@@ -28,9 +28,10 @@ INPUTS = ("velocity", "heading", "steering")
 
 #: statuses after which the filter state changed or was propagated (outputs are published)
 PUBLISHED_STATUSES = frozenset({StepStatus.UPDATED, StepStatus.GATED, StepStatus.LOW_SPEED, StepStatus.REVERSING,
-                                StepStatus.INITIALISED, StepStatus.GAP})
+                                StepStatus.INITIALISED, StepStatus.GAP, StepStatus.NONLINEAR,
+                                StepStatus.REINITIALISED})
 #: statuses where the model was propagated with a measurement (the excitation window counts these)
-MOVING_STATUSES = frozenset({StepStatus.UPDATED, StepStatus.GATED})
+MOVING_STATUSES = frozenset({StepStatus.UPDATED, StepStatus.GATED, StepStatus.NONLINEAR})
 
 
 def should_publish(status: StepStatus) -> bool:

@@ -1,0 +1,77 @@
+"""The covariance prediction and the Joseph-form update of the joint EKF (paper eq. 12).
+
+:func:`make_update` compiles both for one state size (n states, nd motion states, the second
+measured state h1) so that their loops unroll. F's parameter rows are [0, I] (random walks).
+"""
+
+from __future__ import annotations
+
+from transplanter_ident.ekf.layout import G_HP0, G_HP1, G_K0, G_K1, S_CHANGE_Q, W_F, W_GAIN, W_TMP, X_R, X_VY
+from transplanter_ident.jit import inline_kernel
+
+
+def make_update(n, nd, h1):  # noqa: ANN001, ANN201
+    """(propagate_covariance, joseph_update) for n states, nd of them motion, measuring states 0 and h1."""
+    nf, nr = nd, nd + 1
+
+    @inline_kernel
+    def propagate_covariance(p, q, dt, adapting, settings, scale, ws):
+        """P = F P F^T + Q dt, F = [[F_motion], [0, I]]: the parameter states are random walks, Q a density.
+
+        While ``adapting`` (after a change alarm) the stiffness density is at least the raised one
+        (relative: ``scale`` = dC/dtheta of each stiffness, 1 in log mode).
+        """
+        for i in range(nd):
+            for j in range(n):
+                acc = 0.0
+                for k in range(n):
+                    acc += ws[W_F, i, k] * p[k, j]
+                ws[W_TMP, i, j] = acc
+        for i in range(nd):
+            for j in range(i, nd):
+                acc = 0.0
+                for k in range(n):
+                    acc += ws[W_TMP, i, k] * ws[W_F, j, k]
+                p[i, j] = acc
+                p[j, i] = acc
+            for j in range(nd, n):
+                p[i, j] = ws[W_TMP, i, j]
+                p[j, i] = ws[W_TMP, i, j]
+        for i in range(n):
+            density = q[i]
+            if adapting and (i == nf or i == nr):
+                density = max(density, settings[S_CHANGE_Q] * scale[i - nf] * scale[i - nf])
+            p[i, i] += density * dt
+
+    @inline_kernel
+    def joseph_update(x, p, e0, e1, s00, s01, s11, det, antenna_x, motion_only, ws):
+        """X += K e; P = (I - K H) P (I - K H)^T + K R K^T with H = [[1, antenna_x, 0...], e_h1].
+
+        Evaluated expanded, P - K HP - (K HP)^T + K S K^T with S = H P H^T + R: the same function of
+        K (so valid for any gain), in O(n^2). ``motion_only`` zeroes the parameter rows of K (a
+        Schmidt update: the stiffness and offset keep their estimate and take the right covariance).
+        """
+        i00, i01, i11 = s11 / det, -s01 / det, s00 / det
+        for i in range(n):
+            hp0, hp1 = p[X_VY, i] + antenna_x * p[X_R, i], p[h1, i]
+            k0 = hp0 * i00 + hp1 * i01
+            k1 = hp0 * i01 + hp1 * i11
+            if motion_only and i >= nd:
+                k0, k1 = 0.0, 0.0
+            ws[W_GAIN, G_K0, i] = k0
+            ws[W_GAIN, G_K1, i] = k1
+            ws[W_GAIN, G_HP0, i] = hp0
+            ws[W_GAIN, G_HP1, i] = hp1
+            x[i] += k0 * e0 + k1 * e1
+        for i in range(n):
+            k0, k1 = ws[W_GAIN, G_K0, i], ws[W_GAIN, G_K1, i]
+            hp0, hp1 = ws[W_GAIN, G_HP0, i], ws[W_GAIN, G_HP1, i]
+            ks0 = k0 * s00 + k1 * s01 - hp0
+            ks1 = k0 * s01 + k1 * s11 - hp1
+            for j in range(i, n):
+                acc = (p[i, j] - k0 * ws[W_GAIN, G_HP0, j] - k1 * ws[W_GAIN, G_HP1, j]
+                       + ks0 * ws[W_GAIN, G_K0, j] + ks1 * ws[W_GAIN, G_K1, j])
+                p[i, j] = acc
+                p[j, i] = acc
+
+    return propagate_covariance, joseph_update
