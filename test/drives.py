@@ -53,15 +53,15 @@ class Run:
         """Relative error of the last estimate of Cf and Cr."""
         return self.cf[-1] / self.true_cf[-1] - 1.0, self.cr[-1] / self.true_cr[-1] - 1.0
 
-    def covered(self) -> np.ndarray:
-        """Per epoch: both stiffnesses within +-2 sigma of the truth."""
+    def covered(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per epoch: Cf, and Cr, within +-2 sigma of the truth."""
         o = self.outputs
-        return ((np.abs(o[:, O_CF] - self.true_cf) <= 2.0 * o[:, O_CF_STD])
-                & (np.abs(o[:, O_CR] - self.true_cr) <= 2.0 * o[:, O_CR_STD]))
+        return (np.abs(o[:, O_CF] - self.true_cf) <= 2.0 * o[:, O_CF_STD],
+                np.abs(o[:, O_CR] - self.true_cr) <= 2.0 * o[:, O_CR_STD])
 
     def coverage_after(self, start: float) -> float:
-        """Fraction of epochs from ``start`` (s) on whose +-2 sigma bands cover both truths."""
-        return float(np.mean(self.covered()[self.t >= start]))
+        """The smaller of the Cf and Cr fractions of epochs from ``start`` (s) on that +-2 sigma covers."""
+        return min(float(np.mean(c[self.t >= start])) for c in self.covered())
 
     def worst_error_between(self, start: float, end: float) -> float:
         """Largest relative error of Cf or Cr over epochs in [start, end)."""
@@ -113,3 +113,10 @@ def run_drive(sim: SimConfig | SimResult, config: EstimatorConfig | None = None,
 def median_and_worst(values: list[float]) -> tuple[float, float]:
     magnitudes = np.abs(np.asarray(values))
     return float(np.median(magnitudes)), float(np.max(magnitudes))
+
+
+def pooled_coverage(runs: list[Run], start: float) -> tuple[float, float]:
+    """Fractions of all epochs from ``start`` on, over all runs, whose +-2 sigma covers Cf, and Cr."""
+    front = np.concatenate([r.covered()[0][r.t >= start] for r in runs])
+    rear = np.concatenate([r.covered()[1][r.t >= start] for r in runs])
+    return float(np.mean(front)), float(np.mean(rear))

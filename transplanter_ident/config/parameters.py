@@ -64,8 +64,8 @@ class FilterOptions:
     change_detection: bool = True  # the surface-change CUSUM on the innovations
     change_scale: float = 4.0  # innovation variance ratio the surface-change CUSUM tests for
     change_threshold: float = 12.0  # CUSUM alarm level (log-likelihood ratio)
-    change_process_noise: float = 1.0e-2  # stiffness Q density after an alarm, (ln C)^2/s
-    change_hold: float = 5.0  # s the raised density lasts after an alarm
+    change_process_noise: float = 2.0e-2  # stiffness Q density after an alarm, (ln C)^2/s
+    change_hold: float = 4.0  # s the raised density lasts after an alarm
 
     def __post_init__(self) -> None:
         _check_choice("ekf.discretization", self.discretization, DISCRETIZATIONS)
@@ -114,7 +114,7 @@ class NoiseParams:
     steering_offset_initial_variance: P0 of the steering offset, rad^2 (0 when it is not estimated).
     """
 
-    process_noise: tuple[float, float, float, float] = (1.0e-4, 1.0e-4, 1.0e-5, 1.0e-5)
+    process_noise: tuple[float, float, float, float] = (1.0e-4, 1.0e-4, 1.5e-5, 1.5e-5)
     measurement_noise: tuple[float, float] = (4.0e-4, 1.2e-5)
     heading_process_noise: float = 1.0e-8
     steering_offset_process_noise: float = 1.0e-8

@@ -140,7 +140,7 @@ SCHEMA: tuple[Param, ...] = (
     _str("ekf.stiffness_state", "log", "stiffness in the state as log or linear (paper)", STIFFNESS_STATES),
     _str("ekf.measurement", "heading", "heading (z = [vy, psi]) or yaw_rate (paper, z = [vy, r])", MEASUREMENTS),
     # noise (settable at run time; the initial values are used from the next ~/reset)
-    _floats("ekf.process_noise", (1.0e-4, 1.0e-4, 1.0e-5, 1.0e-5), "state units^2/s",
+    _floats("ekf.process_noise", (1.0e-4, 1.0e-4, 1.5e-5, 1.5e-5), "state units^2/s",
             "diag Q for vy, r, Cf, Cr as a spectral density (each GNSS interval dt adds Q dt), in the units "
             "of the state; per step with ekf.process_noise_units: per_step", read_only=False),
     _str("ekf.process_noise_units", "per_second", "per_second (Q a spectral density: one file fits any GNSS "
@@ -178,9 +178,9 @@ SCHEMA: tuple[Param, ...] = (
     _bool("ekf.change_detection", True, "CUSUM test of the innovations for a stiffness change (surface)"),
     _float("ekf.change_scale", 4.0, "", "innovation variance ratio the change test looks for", 1.01, 100.0),
     _float("ekf.change_threshold", 12.0, "", "CUSUM alarm level (log-likelihood ratio)", 1.0, 1000.0),
-    _float("ekf.change_process_noise", 1.0e-2, "(ln C)^2/s", "stiffness Q density (relative) for change_hold "
+    _float("ekf.change_process_noise", 2.0e-2, "(ln C)^2/s", "stiffness Q density (relative) for change_hold "
            "after a change alarm", 1.0e-8, 10.0),
-    _float("ekf.change_hold", 5.0, "s", "how long the raised stiffness Q lasts after a change alarm", 0.01, 600.0),
+    _float("ekf.change_hold", 4.0, "s", "how long the raised stiffness Q lasts after a change alarm", 0.01, 600.0),
     # diagnostics (evaluation.health.HealthThresholds, plus the publishing period and the latency log)
     _float("diagnostics.stale_timeout", 1.0, "s", "time without a message before an input is reported stale "
            "(ERROR)", 0.01, 3600.0, read_only=False),

@@ -70,3 +70,14 @@ def detect_change(memo, settings, t, nis, out):
         g = 0.0
     memo[M_CUSUM] = g
     out[O_CUSUM] = g
+
+
+#: relative 1-sigma of a stiffness below which it counts as known (the linear-range check applies)
+KNOWN_REL_STD = 0.1
+
+
+@inline_kernel
+def known_to(theta, variance, log_state):
+    """Whether a stiffness state (ln C, or C) is known to KNOWN_REL_STD relative 1-sigma."""
+    std = math.sqrt(max(variance, 0.0))
+    return std <= KNOWN_REL_STD if log_state else std <= KNOWN_REL_STD * abs(theta)

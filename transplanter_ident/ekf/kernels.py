@@ -34,7 +34,7 @@ import math
 
 import numpy as np
 
-from transplanter_ident.ekf.adaptation import beyond_linear_range, detect_change
+from transplanter_ident.ekf.adaptation import beyond_linear_range, detect_change, known_to
 from transplanter_ident.ekf.layout import (
     DIVERGENCE_PENALTY,
     E_PSI,
@@ -280,8 +280,11 @@ def make_kernels(heading):
             ws[W_VEC, V_BACKUP_MODEL, i] = model[i]
         cusum_before = memo[M_CUSUM]
 
-        # the tire's range from the latest estimate of the motion (noisy differenced r would select epochs by noise)
-        nonlinear = beyond_linear_range(vehicle, settings, speed, steering, x[nb], x[X_VY], x[X_R], out)
+        # the tire's range from the latest motion estimate (a differenced r would select epochs by its noise),
+        # once both stiffnesses are known: before, holding them could trap a filter still far off
+        log_state = settings[S_LOG] > 0.5
+        nonlinear = (beyond_linear_range(vehicle, settings, speed, steering, x[nb], x[X_VY], x[X_R], out)
+                     and known_to(x[nf], p[nf, nf], log_state) and known_to(x[nr], p[nr, nr], log_state))
 
         # 3.
         psi_model_before = model[X_PSI]
