@@ -4,7 +4,7 @@ Not a test. In one run it
 
 * compiles ``../shared/bench/ekf_reference.c`` (``cc -O2``; the yardstick: plain scalar C of the
   same joint-state EKF) and runs it ``--repeats`` times per model, taking the median ns/step;
-* runs ``ekf.objective_kernel`` (the function the tuner calls once per candidate Q/R) on the
+* runs ``entries.objective_kernel`` (the function the tuner calls once per candidate Q/R) on the
   same synthetic 3000-step sequence, single-threaded, in a Python loop over candidates with
   the same Q/R schedule as the C, ``--repeats`` times, median ns/step (the first, compiling
   call is excluded);
@@ -12,7 +12,7 @@ Not a test. In one run it
 
 Sequence (as in the C): d[k] = 0.26 sin(2 pi k 0.2 / 6), z = [0.1 sin(.) + 0.01 sin(7.3 k),
 0.45 sin(.) + 0.01 cos(5.1 k)], vx = 2 m/s, dt = 0.2 s. The kernel input has the columns
-[t, speed, steering, steering_rate, vy, psi, r] (``ekf.E_*``) with ``measurement: yaw_rate``,
+[t, speed, steering, steering_rate, vy, psi, r] (``layout.E_*``) with ``measurement: yaw_rate``,
 so it is the C's 4-state filter; psi (the integral of r) is only used by the extra row for the
 default ``heading`` mode (5 states, z = [vy, psi]). The innovation gate is opened (threshold
 1e12) so every step does the full update, as the C does.
@@ -44,9 +44,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import transplanter_ident.ekf.kernels as ekf  # noqa: E402
 from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams  # noqa: E402
-from transplanter_ident.ekf.layout import N_MEMO, N_MODEL  # noqa: E402
+from transplanter_ident.ekf import entries, joint_ekf, layout  # noqa: E402
 from transplanter_ident.tuning.problem import batch_objective  # noqa: E402
 
 REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "bench" / "ekf_reference.c"
@@ -76,33 +75,32 @@ def sequence(steps: int, vx: float = 2.0, dt: float = 0.2) -> np.ndarray:
     """The C's synthetic sequence as kernel input rows [t, speed, steering, steering_rate, vy, psi, r]."""
     k = np.arange(steps, dtype=np.float64)
     phase = 2.0 * math.pi * k * 0.2 / 6.0
-    rows = np.zeros((steps, 7))
-    rows[:, ekf.E_T] = k * dt
-    rows[:, ekf.E_SPEED] = vx
-    rows[:, ekf.E_STEERING] = 0.26 * np.sin(phase)
-    rows[:, ekf.E_VY] = 0.1 * np.sin(phase) + 0.01 * np.sin(7.3 * k)
-    rows[:, ekf.E_YAW_RATE] = 0.45 * np.sin(phase) + 0.01 * np.cos(5.1 * k)
-    rows[:, ekf.E_PSI] = np.cumsum(rows[:, ekf.E_YAW_RATE]) * dt
+    rows = np.zeros((steps, layout.N_EPOCH_COLUMNS))
+    rows[:, layout.E_T] = k * dt
+    rows[:, layout.E_SPEED] = vx
+    rows[:, layout.E_STEERING] = 0.26 * np.sin(phase)
+    rows[:, layout.E_VY] = 0.1 * np.sin(phase) + 0.01 * np.sin(7.3 * k)
+    rows[:, layout.E_YAW_RATE] = 0.45 * np.sin(phase) + 0.01 * np.cos(5.1 * k)
+    rows[:, layout.E_PSI] = np.cumsum(rows[:, layout.E_YAW_RATE]) * dt
     return np.ascontiguousarray(rows)
 
 
-def filter_arrays(case: Case) -> ekf.FilterArrays:
+def filter_arrays(case: Case) -> joint_ekf.FilterArrays:
     """The case's filter with the C's P0 and R; Q is set per candidate."""
     linear = case.stiffness_state == "linear"
     options = FilterOptions(discretization=case.discretization, stiffness_state=case.stiffness_state,
                             measurement=case.measurement, gate_threshold=1.0e12)
     p0 = 1.0e6 if linear else 4.0
     noise = NoiseParams(measurement_noise=(4.0e-4, 1.0e-4), initial_covariance=(1.0e-2, 1.0e-2, p0, p0))
-    return ekf.FilterArrays.from_config(EstimatorConfig(options=options, noise=noise))
+    return joint_ekf.FilterArrays.from_config(EstimatorConfig(options=options, noise=noise))
 
 
-def candidate_q(case: Case, arrays: ekf.FilterArrays, i: int) -> np.ndarray:
+def candidate_q(case: Case, arrays: joint_ekf.FilterArrays, i: int) -> np.ndarray:
     """The C's Q schedule: [1e-5, 1e-5, s (1 + i % 7), s] with s = 10 (linear) or 1e-7 (log)."""
     scale = 10.0 if case.stiffness_state == "linear" else 1.0e-7
     q = arrays.process_noise.copy()
-    n = len(q)
-    q[0], q[1] = 1.0e-5, 1.0e-5
-    q[n - 2], q[n - 1] = scale * (1 + i % 7), scale
+    q[layout.X_VY], q[layout.X_R] = 1.0e-5, 1.0e-5
+    q[layout.X_THETA_F], q[layout.X_THETA_R] = scale * (1 + i % 7), scale
     return q
 
 
@@ -112,8 +110,8 @@ def time_kernel(case: Case, rows: np.ndarray, runs: int) -> float:
     qs = [candidate_q(case, a, i) for i in range(runs)]
 
     def one(q: np.ndarray) -> float:
-        return ekf.objective_kernel(rows, a.initial_state.copy(), a.initial_covariance.copy(), np.zeros(N_MODEL),
-                                    np.zeros(N_MEMO), a.vehicle, a.settings, q, a.measurement_noise, ekf.MAE)
+        return entries.objective_kernel(rows, a.initial_state.copy(), a.initial_covariance.copy(), np.zeros(layout.N_MODEL),
+                                    np.zeros(layout.N_MEMO), a.vehicle, a.settings, q, a.measurement_noise, layout.MAE)
 
     one(qs[0])  # compile / load from cache
     start = time.perf_counter()
@@ -131,9 +129,9 @@ def time_batch(case: Case, rows: np.ndarray, runs: int) -> float:
     a = filter_arrays(case)
     qs = np.array([candidate_q(case, a, i) for i in range(runs)])
     rs = np.tile(a.measurement_noise, (runs, 1))
-    batch_objective(rows, a.initial_state, a.initial_covariance, a.vehicle, a.settings, qs[:2], rs[:2], ekf.MAE)
+    batch_objective(rows, a.initial_state, a.initial_covariance, a.vehicle, a.settings, qs[:2], rs[:2], layout.MAE)
     start = time.perf_counter()
-    batch_objective(rows, a.initial_state, a.initial_covariance, a.vehicle, a.settings, qs, rs, ekf.MAE)
+    batch_objective(rows, a.initial_state, a.initial_covariance, a.vehicle, a.settings, qs, rs, layout.MAE)
     return (time.perf_counter() - start) / runs / (len(rows) - 1) * 1e9
 
 

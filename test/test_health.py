@@ -108,7 +108,7 @@ def test_thresholds_are_validated() -> None:
 def test_should_publish_only_after_a_state_change() -> None:
     published = {s for s in StepStatus if should_publish(s)}
     assert published == {StepStatus.UPDATED, StepStatus.GATED, StepStatus.LOW_SPEED, StepStatus.REVERSING,
-                         StepStatus.INITIALISED, StepStatus.GAP}
+                         StepStatus.INITIALISED, StepStatus.GAP, StepStatus.NONLINEAR, StepStatus.REINITIALISED}
 
 
 def test_throttle_counts_suppressed_lines() -> None:

@@ -133,3 +133,27 @@ def test_bad_options_are_one_line_errors(tmp_path: Path, args: tuple[str, str]) 
 def test_unknown_scenario_is_a_usage_error(tmp_path: Path) -> None:
     result = run("simulate", "-o", tmp_path / "bag", "--scenario", "nope")
     assert result.returncode == 2 and "invalid choice" in result.stderr
+
+
+def test_imperfection_flags_write_a_late_offset_gnss_first_bag(tmp_path: Path) -> None:
+    """--steering-offset, --gnss-delay and --gnss-first shape the bag as they say (test_real_sensors.py uses them)."""
+    bag = tmp_path / "imperfect"
+    result = run("simulate", "-o", bag, "--scenario", "stiffness-drop", "--duration", "30", "--seed", "2",
+                 "--steering-offset", "0.01", "--gnss-delay", "0.08", "--gnss-first")
+    assert result.returncode == 0, result.stderr
+    velocity = messages(bag, "/gnss/vel")
+    truth = messages(bag, "/sim/cornering_stiffness")
+    late = [(v.header.stamp.sec - t.header.stamp.sec) * 1e9 + v.header.stamp.nanosec - t.header.stamp.nanosec
+            for v, t in zip(velocity, truth, strict=True)]
+    assert np.allclose(late, 0.08e9, atol=2.0)  # every GNSS message 80 ms after the motion it describes
+    steering = [m.position[0] for m in messages(bag, "/steering_angle")]
+    plain = tmp_path / "plain"
+    assert run("simulate", "-o", plain, "--scenario", "stiffness-drop", "--duration", "30",
+               "--seed", "2").returncode == 0
+    reference = [m.position[0] for m in messages(plain, "/steering_angle")]
+    np.testing.assert_allclose(np.array(steering) - np.array(reference), 0.01, atol=1e-12)
+    with Reader(bag) as reader:  # at equal log times the GNSS message comes first
+        order = [(c.topic, t) for c, t, _ in reader.messages()]
+    first_tie = next(i for i in range(1, len(order)) if order[i][1] == order[i - 1][1]
+                     and {order[i][0], order[i - 1][0]} == {"/gnss/heading", "/steering_angle"})
+    assert order[first_tie][0] == "/steering_angle"

@@ -44,6 +44,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--steering-rate", metavar="HZ", type=float, help="steering angle rate (default 50)")
     parser.add_argument("--antenna-x", metavar="M", type=float, help="GNSS antenna ahead of the CG, m (default 0)")
     parser.add_argument("--antenna-y", metavar="M", type=float, help="GNSS antenna left of the CG, m (default 0)")
+    imperfect = parser.add_argument_group("real-sensor imperfections (DESIGN.md section 7)")
+    imperfect.add_argument("--steering-offset", metavar="RAD", type=float,
+                           help="the steering sensor reads the wheel angle + RAD (default 0)")
+    imperfect.add_argument("--gnss-delay", metavar="S", type=float,
+                           help="GNSS velocity and heading stamped S late, as by a driver stamping on arrival "
+                                "(default 0; replay with gnss.delay: S)")
+    imperfect.add_argument("--gnss-first", action="store_true",
+                           help="log each GNSS message before the steering sample of the same instant")
     enc = parser.add_argument_group("message types, frames and topics")
     enc.add_argument("--velocity-type", choices=("twist", "twist-cov"), default="twist",
                      help="TwistStamped or TwistWithCovarianceStamped (default twist)")
@@ -77,13 +85,15 @@ def _run(args: argparse.Namespace) -> int:
         config = build_config(args.scenario, duration=args.duration, seed=args.seed, speed=args.speed,
                               tire=args.tire, friction=args.friction, gnss_rate=args.gnss_rate,
                               steering_rate=args.steering_rate, antenna_x=args.antenna_x,
-                              antenna_y=args.antenna_y)
+                              antenna_y=args.antenna_y, steering_offset=args.steering_offset,
+                              gnss_delay=args.gnss_delay)
         options = SimBagOptions(
             velocity_topic=args.velocity_topic, heading_topic=args.heading_topic,
             steering_topic=args.steering_topic, velocity_type=args.velocity_type,
             heading_type=args.heading_type, steering_type=args.steering_type,
             velocity_frame=args.velocity_frame, heading_frame=args.heading_frame, joint_name=args.joint_name,
             start_time=args.start_time, truth=not args.no_truth, compress=args.compress, overwrite=args.force,
+            gnss_first=args.gnss_first,
         )
     except ValueError as exc:
         raise CliError(f"invalid option: {exc}") from exc

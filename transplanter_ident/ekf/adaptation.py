@@ -78,6 +78,10 @@ KNOWN_REL_STD = 0.1
 
 @inline_kernel
 def known_to(theta, variance, log_state):
-    """Whether a stiffness state (ln C, or C) is known to KNOWN_REL_STD relative 1-sigma."""
+    """Whether a stiffness state (ln C, or C) is known to KNOWN_REL_STD relative 1-sigma.
+
+    The linear-range hold applies only then: before, a still wrong offset or stiffness makes every
+    slip look large, and holding the stiffness would trap the filter where it is.
+    """
     std = math.sqrt(max(variance, 0.0))
     return std <= KNOWN_REL_STD if log_state else std <= KNOWN_REL_STD * abs(theta)

@@ -247,8 +247,7 @@ def make_kernels(heading):
         6. Joseph update (motion only outside the linear tire range); clamp the stiffness.
         7. Roll back if anything became non-finite.
         """
-        for k in range(N_OUTPUTS):
-            out[k] = 0.0
+        out[:] = 0.0
         # 1.
         if not (_finite(t) and _finite(speed) and _finite(steering) and _finite(steering_rate)
                 and _finite(vy_antenna) and _finite(psi) and _finite(yaw_rate)):
@@ -280,8 +279,7 @@ def make_kernels(heading):
             ws[W_VEC, V_BACKUP_MODEL, i] = model[i]
         cusum_before = memo[M_CUSUM]
 
-        # the tire's range from the latest motion estimate (a differenced r would select epochs by its noise),
-        # once both stiffnesses are known: before, holding them could trap a filter still far off
+        # the tire's range from the last motion estimate, once both stiffnesses are known (see adaptation.py)
         log_state = settings[S_LOG] > 0.5
         nonlinear = (beyond_linear_range(vehicle, settings, speed, steering, x[nb], x[X_VY], x[X_R], out)
                      and known_to(x[nf], p[nf, nf], log_state) and known_to(x[nr], p[nr, nr], log_state))
@@ -346,8 +344,7 @@ def make_kernels(heading):
             for i in range(N_MODEL):
                 model[i] = ws[W_VEC, V_BACKUP_MODEL, i]
             memo[M_CUSUM] = cusum_before
-            for k in range(N_OUTPUTS):
-                out[k] = 0.0
+            out[:] = 0.0
             write_outputs(x, p, settings, StepStatus.DIVERGED, model[X_R], model[X_VY], out)
             return StepStatus.DIVERGED
         memo[M_T_PREV] = t

@@ -25,6 +25,7 @@ ASPHALT = StiffnessSchedule(front=(8000.0,), rear=(10000.0,))  # sim default, pa
 FIELD = StiffnessSchedule(front=(3500.0,), rear=(4500.0,))  # paddy field: softer tires, lower stiffness
 ASPHALT_FRICTION = 0.8
 FIELD_FRICTION = 0.4
+WET_FRICTION = 0.3  # a wet field: the tanh tire leaves its linear range at the sine's peaks
 
 
 @dataclass(frozen=True)
@@ -60,6 +61,19 @@ def _surface_change(duration: float) -> SimConfig:
                      stiffness=stiffness, friction=ASPHALT_FRICTION)
 
 
+def _stiffness_drop(duration: float) -> SimConfig:
+    change = round(0.5 * duration, 3)
+    stiffness = StiffnessSchedule(times=(0.0, change), front=(ASPHALT.front[0], 0.6 * ASPHALT.front[0]),
+                                  rear=(ASPHALT.rear[0], 0.6 * ASPHALT.rear[0]), transition=0.0)
+    return SimConfig(duration=duration, speed=2.0, steering=sine_steering(math.radians(15.0), 6.0),
+                     stiffness=stiffness, friction=ASPHALT_FRICTION)
+
+
+def _wet_saturating(duration: float) -> SimConfig:
+    return SimConfig(duration=duration, speed=2.0, steering=sine_steering(math.radians(15.0), 6.0),
+                     stiffness=ASPHALT, tire="saturating", friction=WET_FRICTION)
+
+
 def _multisine(duration: float) -> SimConfig:
     return SimConfig(duration=duration, speed=2.0,
                      steering=multisine_steering(math.radians(20.0), (2.5, 4.0, 7.0, 11.0), seed=1),
@@ -74,6 +88,10 @@ SCENARIOS: dict[str, Scenario] = {
     "sine": Scenario("+-15 deg sine steer, 6 s period, 2 m/s, asphalt (identification test)", 120.0, _sine),
     "surface-change": Scenario("sine steer at 2 m/s; stiffness drops from asphalt to field half-way (2 s blend)",
                                120.0, _surface_change),
+    "stiffness-drop": Scenario("sine steer at 2 m/s; both stiffnesses drop 40 % at once half-way (a wet patch)",
+                               150.0, _stiffness_drop),
+    "wet-saturating": Scenario("sine steer at 2 m/s on a wet field (mu 0.3, tanh tire beyond its linear range "
+                               "at the peaks)", 120.0, _wet_saturating),
     "multisine": Scenario("multi-sine steer (periods 2.5-11 s, |delta| <= 20 deg), 2 m/s, asphalt",
                           120.0, _multisine),
 }
@@ -85,7 +103,8 @@ def build_config(name: str, *, duration: float | None = None, seed: int | None =
                  speed: float | None = None, tire: str | None = None, friction: float | None = None,
                  gnss_rate: float | None = None, steering_rate: float | None = None,
                  antenna_x: float | None = None, antenna_y: float | None = None,
-                 vehicle: VehicleParams | None = None) -> SimConfig:
+                 vehicle: VehicleParams | None = None, steering_offset: float | None = None,
+                 gnss_delay: float | None = None) -> SimConfig:
     """The SimConfig of scenario ``name`` with the given overrides (None keeps the scenario's value)."""
     if name not in SCENARIOS:
         raise ValueError(f"unknown scenario {name!r}; choose one of {', '.join(SCENARIOS)}")
@@ -93,7 +112,8 @@ def build_config(name: str, *, duration: float | None = None, seed: int | None =
     config = scenario.build(scenario.default_duration if duration is None else float(duration))
     changes: dict[str, object] = {}
     for key, value in (("seed", seed), ("speed", speed), ("tire", tire), ("friction", friction),
-                       ("gnss_rate", gnss_rate), ("steering_rate", steering_rate)):
+                       ("gnss_rate", gnss_rate), ("steering_rate", steering_rate),
+                       ("steering_offset", steering_offset), ("gnss_delay", gnss_delay)):
         if value is not None:
             changes[key] = value
     base_vehicle = vehicle if vehicle is not None else config.vehicle

@@ -86,7 +86,8 @@ def tune(config: EstimatorConfig, epochs: EpochArrays, *, algorithm: str = "ipso
     result = minimize(problem, problem.box, settings, seed, initial=problem.start[None, :],
                       max_evaluations=max_evaluations, on_iteration=on_iteration)
     seconds = time.perf_counter() - begin
-    return TuningOutcome(problem, result, problem.evaluate_noise(config.noise), seed, seconds)
+    start_fitness = float(problem(problem.start[None, :])[0])  # as the swarm saw its starting particle
+    return TuningOutcome(problem, result, start_fitness, seed, seconds)
 
 
 def compare(outcome: TuningOutcome, epochs: EpochArrays, tuned_label: str | None = None) -> Comparison:
