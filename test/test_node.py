@@ -45,7 +45,9 @@ TWIST, QUAT, JOINT = "geometry_msgs/msg/TwistStamped", "geometry_msgs/msg/Quater
 OUT_TYPES = {"stiffness": ("/estimator/cornering_stiffness", "geometry_msgs/msg/Vector3Stamped"),
              "std": ("/estimator/cornering_stiffness_std", "geometry_msgs/msg/Vector3Stamped"),
              "model": ("/estimator/model_output", TWIST),
-             "measurement": ("/estimator/measurement", TWIST)}
+             "measurement": ("/estimator/measurement", TWIST),
+             "offset": ("/estimator/steering_offset", "geometry_msgs/msg/Vector3Stamped"),
+             "valid": ("/estimator/cornering_stiffness_valid", "std_msgs/msg/Bool")}
 DIAGNOSTICS = ("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray")
 PUBLISH_TYPES = [[VEL, TWIST], [HEAD, QUAT], [STEER, JOINT]]
 
@@ -154,12 +156,13 @@ def offline_outputs(samples: list, params: EstimatorParams, noise_switch: dict[i
 
 
 def online_outputs(records: dict[str, list]) -> list[dict[str, float]]:
-    """The node's four output topics joined per epoch (they are published together, in order)."""
-    stiff, std, model, meas = (records[k] for k in ("stiffness", "std", "model", "measurement"))
-    assert len(stiff) == len(std) == len(model) == len(meas), [len(x) for x in (stiff, std, model, meas)]
+    """The node's output topics joined per epoch (they are published together, in order)."""
+    stiff, std, model, meas, offset, valid = (records[k] for k in ("stiffness", "std", "model", "measurement",
+                                                                   "offset", "valid"))
+    assert len({len(x) for x in (stiff, std, model, meas, offset, valid)}) == 1, [len(x) for x in (stiff, std)]
     rows = []
-    for a, b, c, d in zip(stiff, std, model, meas, strict=True):
-        stamps = {json.dumps(m["msg"]["header"]["stamp"]) for m in (a, b, c, d)}
+    for a, b, c, d, e, f in zip(stiff, std, model, meas, offset, valid, strict=True):
+        stamps = {json.dumps(m["msg"]["header"]["stamp"]) for m in (a, b, c, d, e)}
         assert len(stamps) == 1, stamps
         stamp = a["msg"]["header"]["stamp"]
         rows.append({"t": bag_io.seconds(stamp["sec"] * bag_io.NS_PER_S + stamp["nanosec"]),
@@ -167,7 +170,8 @@ def online_outputs(records: dict[str, list]) -> list[dict[str, float]]:
                      "cf_std": b["msg"]["vector"]["x"], "cr_std": b["msg"]["vector"]["y"],
                      "vy_model": c["msg"]["twist"]["linear"]["y"], "r_model": c["msg"]["twist"]["angular"]["z"],
                      "vx": d["msg"]["twist"]["linear"]["x"], "vy_meas": d["msg"]["twist"]["linear"]["y"],
-                     "r_meas": d["msg"]["twist"]["angular"]["z"]})
+                     "r_meas": d["msg"]["twist"]["angular"]["z"], "steering_offset": e["msg"]["vector"]["x"],
+                     "correlation": b["msg"]["vector"]["z"], "valid": float(f["msg"]["data"])})
     return rows
 
 
@@ -190,6 +194,8 @@ def assert_all_finite(records: dict[str, list]) -> None:
     for key in OUT_TYPES:
         for item in records.get(key, []):
             msg = item["msg"]
+            if "data" in msg:
+                continue  # std_msgs/Bool
             values = list(msg["vector"].values()) if "vector" in msg else [
                 *msg["twist"]["linear"].values(), *msg["twist"]["angular"].values()]
             assert all(math.isfinite(v) for v in values), (key, msg)
@@ -355,9 +361,18 @@ def test_online_equals_offline(tmp_path: Path, executor: str) -> None:
     With either executor of ``estimator --executor``: the EventsExecutor (default) and rclpy's default one.
     """
     from transplanter_ident.ekf.joint_ekf import run_sequence
-    from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD, O_STATUS
+    from transplanter_ident.ekf.layout import (
+        O_CF,
+        O_CF_STD,
+        O_CORRELATION,
+        O_CR,
+        O_CR_STD,
+        O_OFFSET,
+        O_STATUS,
+    )
     from transplanter_ident.epochs.assembler import assemble
     from transplanter_ident.epochs.epoch import EpochArrays
+    from transplanter_ident.evaluation.validity import decide_sequence
 
     params = EstimatorParams()
     bag = sample_bag(tmp_path)
@@ -380,10 +395,15 @@ def test_online_equals_offline(tmp_path: Path, executor: str) -> None:
     online = online_outputs(result["records"])
     assert len(online) == expected, f"{len(online)} of {expected} epochs published\n{result['log']}"
     assert_all_finite(result["records"])
-    exact = [{"t": t, "cf": row[O_CF], "cr": row[O_CR], "cf_std": row[O_CF_STD], "cr_std": row[O_CR_STD]}
-             for t, row in zip(epochs.t.tolist(), outputs, strict=True)]
-    worst_exact = max_relative_difference(online, exact, ("cf", "cr", "cf_std", "cr_std"))
+    valid = decide_sequence(params.config, params.validity, epochs, outputs)
+    exact = [{"t": t, "cf": row[O_CF], "cr": row[O_CR], "cf_std": row[O_CF_STD], "cr_std": row[O_CR_STD],
+              "steering_offset": row[O_OFFSET], "correlation": row[O_CORRELATION], "valid": float(ok)}
+             for t, row, ok in zip(epochs.t.tolist(), outputs, valid, strict=True)]
+    worst_exact = max_relative_difference(online, exact, ("cf", "cr", "cf_std", "cr_std", "correlation"))
     assert worst_exact <= 1e-9
+    assert [row["valid"] for row in online] == [row["valid"] for row in exact]  # the validity flag too
+    assert any(row["valid"] for row in online) and not all(row["valid"] for row in online)
+    assert max(abs(a["steering_offset"] - b["steering_offset"]) for a, b in zip(online, exact, strict=True)) <= 1e-12
 
     csv_rows = replay_csv(bag, tmp_path)  # the `replay` command itself, through bag_io
     worst_csv = max_relative_difference(online, csv_rows)
@@ -391,6 +411,7 @@ def test_online_equals_offline(tmp_path: Path, executor: str) -> None:
           f"difference {worst_csv:.2e} (the CSV has 10 significant digits); vs run_sequence at full precision "
           f"{worst_exact:.2e}")
     assert worst_csv <= 1e-9
+    assert [row["valid"] for row in csv_rows] == [row["valid"] for row in online]  # replay's CSV column `valid`
 
 
 # --------------------------------------------------------------------------- bad input

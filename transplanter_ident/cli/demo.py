@@ -9,7 +9,7 @@
 2. replays ``step20-ccw`` and ``step30-cw`` with ``config/estimator.yaml`` layered under
    ``DIR/tuned.yaml`` (the way a user would) and prints the paper's Table 2 for the starting
    against the tuned Q/R, with the tuned/start ratios; the replay CSVs are written by
-   :func:`transplanter_ident.replay.write_csv`;
+   :func:`transplanter_ident.cli.replay.write_csv`;
 3. repeats step 1 in the paper's own configuration (forward Euler eq. 10, linear stiffness,
    z = [vy, r]) from a trial-and-error Q/R, the comparison of the paper's Figs. 6-7;
 4. compares the two objectives, ``mae`` (eq. 21) and ``nll``, on the ``sine`` bag by the final
@@ -35,7 +35,7 @@ from transplanter_ident.bags.samples import ensure_bag
 from transplanter_ident.cli.plots import plot_convergence, plot_model_output, plot_stiffness, require_pyplot
 from transplanter_ident.cli.tuner import progress_printer
 from transplanter_ident.cli.util import CliError, cli_main
-from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams
+from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams, ValiditySettings
 from transplanter_ident.config.params_file import EstimatorParams, load_params
 from transplanter_ident.config.params_writer import write_params_yaml
 from transplanter_ident.ekf.joint_ekf import run_sequence
@@ -43,6 +43,7 @@ from transplanter_ident.ekf.layout import O_CF, O_CR, O_STATUS, StepStatus
 from transplanter_ident.ekf.model import discrete_matrices
 from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.evaluation.metrics import format_table2, stiffness_error
+from transplanter_ident.evaluation.validity import decide_sequence
 from transplanter_ident.files import atomic_write_text
 from transplanter_ident.tuning.pso import pso_for_budget
 from transplanter_ident.tuning.tune import (
@@ -191,7 +192,8 @@ def _run(args: argparse.Namespace) -> int:
             text += "\n" + stiffness_line(f"stiffness, {label}:", run, config)[1]
         print(text)
         summary.append(text)
-        write_csv(out / f"{name}_tuned.csv", run.epochs, comparison.tuned_outputs)
+        valid = decide_sequence(layered, ValiditySettings(), run.epochs, comparison.tuned_outputs)
+        write_csv(out / f"{name}_tuned.csv", run.epochs, comparison.tuned_outputs, valid)
         write_figures(out, name, run, comparison, "IPSO")
 
     _section(f"3. The paper's filter (Euler eq. 10, linear stiffness, z = [vy, r]) on {TUNE_BAG}")

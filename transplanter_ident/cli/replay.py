@@ -18,6 +18,7 @@ Example: ``replay bags/sine --params-file config/estimator.yaml --csv sine.csv``
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -57,14 +58,14 @@ def _load_params(paths: list[str]):  # noqa: ANN202 - EstimatorParams, imported 
     return load_params(paths) if paths else EstimatorParams()
 
 
-def write_csv(path: str | Path, epochs, outputs) -> int:  # noqa: ANN001 - EpochArrays, ndarray
+def write_csv(path: str | Path, epochs, outputs, valid) -> int:  # noqa: ANN001 - EpochArrays, ndarrays
     """Write the replay CSV (header + one row per epoch) atomically; returns the number of rows."""
     import numpy as np
 
     from transplanter_ident.evaluation.metrics import CSV_COLUMNS, csv_rows
 
-    rows = csv_rows(epochs, outputs)
-    fmt = ["%.6f"] + ["%.10g"] * (rows.shape[1] - 1)  # t: us (a float64 of epoch seconds holds ~0.2 us)
+    rows = csv_rows(epochs, outputs, valid)
+    fmt = ["%.6f"] + ["%.10g"] * (rows.shape[1] - 2) + ["%d"]  # t: us (float64 epoch seconds hold ~0.2 us)
     with atomic_output_file(path, "w", newline="") as handle:
         np.savetxt(handle, rows, fmt=fmt, delimiter=",", header=",".join(CSV_COLUMNS), comments="")
     return rows.shape[0]
@@ -76,8 +77,9 @@ def _run(args: argparse.Namespace) -> int:
     from transplanter_ident.bags import read_bag, summarize_rejections, write_output_bag
     from transplanter_ident.config.params_file import parameter_value
     from transplanter_ident.ekf.joint_ekf import run_sequence
-    from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD
+    from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD, O_OFFSET
     from transplanter_ident.evaluation.metrics import format_table2, propagated, stiffness_error, table2_row
+    from transplanter_ident.evaluation.validity import decide_sequence
 
     if args.output and Path(args.output).exists() and not args.force:
         raise CliError(f"{args.output}: already exists (choose another path, or pass --force)")
@@ -87,8 +89,9 @@ def _run(args: argparse.Namespace) -> int:
     data = read_bag(args.bag, params, truth=True, progress=not args.quiet)
     epochs = data.epochs
     outputs = run_sequence(params.config, epochs)
+    valid = decide_sequence(params.config, params.validity, epochs, outputs)
     if args.csv:
-        write_csv(args.csv, epochs, outputs)
+        write_csv(args.csv, epochs, outputs, valid)
     if args.output:
         write_output_bag(args.output, epochs, outputs, overwrite=args.force,
                          frame_id=parameter_value(params, "output.frame_id"))
@@ -101,7 +104,9 @@ def _run(args: argparse.Namespace) -> int:
     print(format_table2([table2_row("EKF", epochs, outputs)], title="Table 2 (model output vs measurement):"))
     last = outputs[-1]
     print(f"Identified stiffness (final): Cf = {last[O_CF]:.1f} +- {last[O_CF_STD]:.1f} N/rad, "
-          f"Cr = {last[O_CR]:.1f} +- {last[O_CR_STD]:.1f} N/rad")
+          f"Cr = {last[O_CR]:.1f} +- {last[O_CR_STD]:.1f} N/rad, steering offset "
+          f"{math.degrees(last[O_OFFSET]):+.3f} deg; {'valid' if len(valid) and valid[-1] else 'NOT valid'} "
+          f"(valid in {100 * float(np.mean(valid)) if len(valid) else 0.0:.0f} % of epochs)")
     if data.truth is not None:
         true_f, true_r = data.truth.at(epochs.t)
         err = stiffness_error(outputs, true_f, true_r)

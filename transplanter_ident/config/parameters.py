@@ -137,6 +137,35 @@ class NoiseParams:
 
 
 @dataclass(frozen=True)
+class ValiditySettings:
+    """Thresholds of the validity decision (the ``validity.*`` parameters)."""
+
+    window: float = 10.0  # s of data over which excitation and consistency are judged
+    max_rel_std: float = 0.05  # relative 1-sigma of Cf and Cr
+    min_steering_std: float = 0.02  # rad: steering standard deviation over the window
+    min_yaw_rate_std: float = 0.02  # rad/s
+    nis_quantile_sigmas: float = 3.0  # the windowed NIS sum may exceed its mean by this many sigmas
+    max_autocorrelation: float = 0.3  # lag-1 autocorrelation of the whitened vy innovation
+    max_sideslip: float = 0.35  # rad: |vy / vx| beyond it the velocity and heading disagree
+    course_ratio: float = 0.2  # RMS vy at the antenna below this fraction of (lr + ax) RMS r: course over ground
+    hold_on: float = 3.0  # s every check must hold before valid
+    hold_off: float = 1.0  # s a soft check must fail before invalid
+    max_nonlinear_fraction: float = 0.2  # of the window's epochs beyond the linear tire range
+
+    def __post_init__(self) -> None:
+        for name in ("window", "max_rel_std", "nis_quantile_sigmas", "max_autocorrelation", "max_sideslip",
+                     "course_ratio", "max_nonlinear_fraction"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"validity.{name} must be a positive finite number, got {value!r}")
+        for name in ("min_steering_std", "min_yaw_rate_std", "hold_on", "hold_off"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"validity.{name} must be a finite number >= 0, got {value!r}")
+
+
+
+@dataclass(frozen=True)
 class EstimatorConfig:
     """Everything the filter core needs."""
 

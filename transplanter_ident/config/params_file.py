@@ -32,7 +32,13 @@ from typing import Any
 
 import yaml
 
-from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams, VehicleParams
+from transplanter_ident.config.parameters import (
+    EstimatorConfig,
+    FilterOptions,
+    NoiseParams,
+    ValiditySettings,
+    VehicleParams,
+)
 from transplanter_ident.config.schema import (
     FRAMES,
     PARAMS,
@@ -115,6 +121,7 @@ class EstimatorParams:
     frames: FrameConfig = field(default_factory=FrameConfig)
     steering: SteeringConfig = field(default_factory=SteeringConfig)
     gnss: GnssConfig = field(default_factory=GnssConfig)
+    validity: ValiditySettings = field(default_factory=ValiditySettings)
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -126,6 +133,7 @@ _SECTIONS: dict[str, tuple[type, ...]] = {
     "frames": (FrameConfig,),
     "steering": (SteeringConfig,),
     "gnss": (GnssConfig,),
+    "validity": (ValiditySettings,),
 }
 
 
@@ -232,6 +240,7 @@ def flat_to_params(flat: Mapping[str, Any]) -> EstimatorParams:
         frames=_build(FrameConfig, sections["frames"]),
         steering=_build(SteeringConfig, sections["steering"]),
         gnss=_build(GnssConfig, sections["gnss"]),
+        validity=_build(ValiditySettings, sections["validity"]),
         extra=extra,
     )
 
@@ -250,6 +259,7 @@ def params_to_flat(p: EstimatorParams) -> dict[str, Any]:
         "frames": (p.frames,),
         "steering": (p.steering,),
         "gnss": (p.gnss,),
+        "validity": (p.validity,),
     }
     flat: dict[str, Any] = {}
     for namespace, objs in objects.items():

@@ -181,6 +181,29 @@ SCHEMA: tuple[Param, ...] = (
     _float("ekf.change_process_noise", 2.0e-2, "(ln C)^2/s", "stiffness Q density (relative) for change_hold "
            "after a change alarm", 1.0e-8, 10.0),
     _float("ekf.change_hold", 4.0, "s", "how long the raised stiffness Q lasts after a change alarm", 0.01, 600.0),
+    # the validity decision (evaluation/validity.py; config.parameters.ValiditySettings)
+    _float("validity.window", 10.0, "s", "data span over which excitation and innovation consistency are judged",
+           1.0, 600.0, read_only=False),
+    _float("validity.max_rel_std", 0.05, "", "relative 1-sigma of Cf and Cr above which the estimate is not "
+           "valid", 1.0e-4, 10.0, read_only=False),
+    _float("validity.min_steering_std", 0.02, "rad", "steering standard deviation over the window needed for "
+           "excitation (or the yaw-rate one)", 0.0, 1.6, read_only=False),
+    _float("validity.min_yaw_rate_std", 0.02, "rad/s", "yaw-rate standard deviation over the window needed "
+           "for excitation (or the steering one)", 0.0, 10.0, read_only=False),
+    _float("validity.nis_quantile_sigmas", 3.0, "", "the window's NIS sum may exceed its chi^2 mean by this "
+           "many of its sigmas", 0.1, 100.0, read_only=False),
+    _float("validity.max_autocorrelation", 0.3, "", "lag-1 autocorrelation of the whitened vy innovation above "
+           "which the filter is inconsistent (an unconfigured delay)", 0.01, 1.0, read_only=False),
+    _float("validity.max_sideslip", 0.35, "rad", "median |vy/vx| above which GNSS velocity and heading disagree "
+           "(a frame mix-up)", 0.01, 1.6, read_only=False),
+    _float("validity.course_ratio", 0.2, "", "RMS antenna vy below this fraction of (lr + antenna_x) RMS r "
+           "while turning: the heading is a course over ground", 0.001, 1.0, read_only=False),
+    _float("validity.hold_on", 3.0, "s", "every check must hold this long before the estimate is valid", 0.0,
+           600.0, read_only=False),
+    _float("validity.hold_off", 1.0, "s", "a soft check must fail this long before the estimate is invalid",
+           0.0, 600.0, read_only=False),
+    _float("validity.max_nonlinear_fraction", 0.2, "", "fraction of the window's epochs beyond the linear tire "
+           "range above which the estimate is not valid", 0.001, 1.0, read_only=False),
     # diagnostics (evaluation.health.HealthThresholds, plus the publishing period and the latency log)
     _float("diagnostics.stale_timeout", 1.0, "s", "time without a message before an input is reported stale "
            "(ERROR)", 0.01, 3600.0, read_only=False),

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from transplanter_ident.ekf.joint_ekf import Estimate
 from transplanter_ident.ekf.layout import StepStatus
 from transplanter_ident.epochs.epoch import Epoch, Rejection
+from transplanter_ident.evaluation.validity import Decision
 from transplanter_ident.evaluation.windows import LatencyStats, RollingRms, TimeWindow
 
 OK, WARN, ERROR = 0, 1, 2
@@ -134,6 +135,7 @@ class _FilterState:
     epoch_rejected: int = 0
     last_epoch_rejection: str = ""
     unpublished: int = 0  # outputs withheld because a value was not finite
+    validity: Decision = field(default_factory=lambda: Decision(False, ("no estimate yet",), False))
 
 
 class HealthMonitor:
@@ -206,6 +208,20 @@ class HealthMonitor:
             self._steering_rms.add(epoch.t, epoch.steering)
             self._yaw_rate_rms.add(epoch.t, epoch.yaw_rate)
 
+    def on_validity(self, decision: Decision) -> None:
+        """The validity decision of the latest epoch (evaluation.validity)."""
+        self._filter.validity = decision
+
+    def _validity_report(self) -> HealthReport:
+        decision = self._filter.validity
+        name = f"{self.name}: validity"
+        values = (("valid", str(decision.valid).lower()), ("reasons", "; ".join(decision.reasons)))
+        if decision.valid:
+            return HealthReport(name, OK, "estimate valid", values)
+        level = ERROR if decision.hard else WARN
+        return HealthReport(name, level, "not valid: " + ("; ".join(decision.reasons) or "waiting (hysteresis)"),
+                            values)
+
     def on_unpublished(self) -> None:
         """An output was withheld because it was not finite."""
         self._filter.unpublished += 1
@@ -218,7 +234,8 @@ class HealthMonitor:
     def report(self, now: float) -> list[HealthReport]:
         """The current status lines: one per input, then motion, measurements, convergence, excitation, latency."""
         reports = [self._input_report(self.inputs[name], now) for name in INPUTS]
-        reports += [self._motion_report(), self._measurement_report(now), self._convergence_report(),
+        reports += [self._motion_report(), self._measurement_report(now), self._validity_report(),
+                    self._convergence_report(),
                     self._excitation_report(), self._latency_report()]
         return reports
 

@@ -18,6 +18,7 @@ from transplanter_ident.ekf.layout import (
     O_CF_STD,
     O_CR,
     O_CR_STD,
+    O_OFFSET,
     O_R_MODEL,
     O_STATUS,
     O_VY_MODEL,
@@ -25,7 +26,8 @@ from transplanter_ident.ekf.layout import (
 )
 from transplanter_ident.epochs.epoch import EpochArrays
 
-CSV_COLUMNS = ("t", "vx", "vy_meas", "r_meas", "delta", "vy_model", "r_model", "cf", "cr", "cf_std", "cr_std")
+CSV_COLUMNS = ("t", "vx", "vy_meas", "r_meas", "delta", "vy_model", "r_model", "cf", "cr", "cf_std", "cr_std",
+               "steering_offset", "valid")
 
 
 @dataclass(frozen=True)
@@ -88,10 +90,10 @@ def stiffness_error(outputs: np.ndarray, true_front: np.ndarray, true_rear: np.n
                           float(np.mean(np.abs(rel_r))))
 
 
-def csv_rows(epochs: EpochArrays, outputs: np.ndarray) -> np.ndarray:
-    """The replay CSV's columns (CSV_COLUMNS) as an (N, 11) array."""
+def csv_rows(epochs: EpochArrays, outputs: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """The replay CSV's columns (CSV_COLUMNS) as an (N, 13) array; ``valid`` is the validity decision."""
     return np.column_stack([
         epochs.t, epochs.longitudinal_velocity, epochs.lateral_velocity, epochs.yaw_rate, epochs.steering,
         outputs[:, O_VY_MODEL], outputs[:, O_R_MODEL], outputs[:, O_CF], outputs[:, O_CR],
-        outputs[:, O_CF_STD], outputs[:, O_CR_STD],
+        outputs[:, O_CF_STD], outputs[:, O_CR_STD], outputs[:, O_OFFSET], np.asarray(valid, dtype=np.float64),
     ])

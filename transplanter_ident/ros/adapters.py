@@ -16,7 +16,7 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import QuaternionStamped, TwistStamped, TwistWithCovarianceStamped, Vector3Stamped
 from sensor_msgs.msg import Imu, JointState
-from std_msgs.msg import Float64
+from std_msgs.msg import Bool, Float64
 
 from transplanter_ident.ekf.joint_ekf import Estimate
 from transplanter_ident.epochs.epoch import Epoch
@@ -67,35 +67,57 @@ def joint_position(msg: JointState, joint: str) -> float | None:
 
 
 def output_values(epoch: Epoch, est: Estimate) -> tuple[float, ...]:
-    """Cf, Cr, their 1-sigma, the model's vy and r, and the measured vx, vy, r: what one epoch publishes."""
+    """What one epoch publishes (OutputMessages.fill reads them in this order).
+
+    Cf, Cr, their 1-sigma, the model's vy and r, the measured vx, vy, r, the steering offset and its
+    1-sigma, and the correlation of the two stiffness states.
+    """
     return (est.cornering_stiffness_front, est.cornering_stiffness_rear, est.cornering_stiffness_front_std,
             est.cornering_stiffness_rear_std, est.lateral_velocity_model, est.yaw_rate_model,
-            epoch.longitudinal_velocity, epoch.lateral_velocity, epoch.yaw_rate)
+            epoch.longitudinal_velocity, epoch.lateral_velocity, epoch.yaw_rate, est.steering_offset,
+            est.steering_offset_std, est.stiffness_correlation)
+
+
+#: (message type, topic) of every per-epoch output, in the order OutputMessages.all() returns them
+OUTPUT_TOPICS = ((Vector3Stamped, "~/cornering_stiffness"), (Vector3Stamped, "~/cornering_stiffness_std"),
+                 (TwistStamped, "~/model_output"), (TwistStamped, "~/measurement"),
+                 (Vector3Stamped, "~/steering_offset"), (Bool, "~/cornering_stiffness_valid"))
 
 
 class OutputMessages:
-    """The four output messages, reused for every epoch (``publish()`` serializes at once)."""
+    """The output messages, reused for every epoch (``publish()`` serializes at once).
+
+    ``~/cornering_stiffness_std``: x, y = 1-sigma of Cf, Cr; z = the correlation of the two stiffness
+    states (ln Cf, ln Cr in the default log mode), so a controller can use the pair's joint uncertainty.
+    ``~/steering_offset``: x = the steering-sensor offset (rad, wheel = sensor - offset), y = its 1-sigma.
+    """
 
     def __init__(self, frame_id: str) -> None:
-        self.stiffness, self.std = Vector3Stamped(), Vector3Stamped()
+        self.stiffness, self.std, self.offset = Vector3Stamped(), Vector3Stamped(), Vector3Stamped()
         self.model, self.measurement = TwistStamped(), TwistStamped()
-        for msg in self.all():
+        self.valid = Bool()
+        for msg in self.stamped():
             msg.header.frame_id = frame_id
 
-    def all(self) -> tuple[Any, ...]:
-        """stiffness, std, model output, measurement: the order the node publishes them in."""
-        return self.stiffness, self.std, self.model, self.measurement
+    def stamped(self) -> tuple[Any, ...]:
+        return self.stiffness, self.std, self.model, self.measurement, self.offset
 
-    def fill(self, t: float, values: Sequence[float]) -> None:
-        """Stamp all four with ``t`` and set them from :func:`output_values`."""
+    def all(self) -> tuple[Any, ...]:
+        """The messages in OUTPUT_TOPICS order."""
+        return (*self.stamped(), self.valid)
+
+    def fill(self, t: float, values: Sequence[float], valid: bool) -> None:
+        """Stamp all with ``t`` and set them from :func:`output_values` and the validity decision."""
         stamp = seconds_to_stamp(t)
-        for msg in self.all():
+        for msg in self.stamped():
             msg.header.stamp = stamp
         self.stiffness.vector.x, self.stiffness.vector.y = values[0], values[1]
-        self.std.vector.x, self.std.vector.y = values[2], values[3]
+        self.std.vector.x, self.std.vector.y, self.std.vector.z = values[2], values[3], values[11]
         self.model.twist.linear.y, self.model.twist.angular.z = values[4], values[5]
         linear, angular = self.measurement.twist.linear, self.measurement.twist.angular
         linear.x, linear.y, angular.z = values[6], values[7], values[8]
+        self.offset.vector.x, self.offset.vector.y = values[9], values[10]
+        self.valid.data = bool(valid)
 
 
 def diagnostic_array(stamp: Any, reports: Sequence[HealthReport], hardware_id: str) -> DiagnosticArray:

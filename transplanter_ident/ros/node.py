@@ -13,7 +13,9 @@ Subscriptions (qos_profile_sensor_data; names and types are parameters):
     topics.steering  sensor_msgs/JointState (joint steering.joint_name) | std_msgs/Float64 (topics.steering_type)
 Publications, once per processed epoch, stamped with the epoch's time and framed ``output.frame_id``:
     ~/cornering_stiffness      geometry_msgs/Vector3Stamped  x = Cf, y = Cr (N/rad per tire)
-    ~/cornering_stiffness_std  geometry_msgs/Vector3Stamped  1-sigma of Cf, Cr
+    ~/cornering_stiffness_std  geometry_msgs/Vector3Stamped  1-sigma of Cf, Cr; z = their states' correlation
+    ~/cornering_stiffness_valid std_msgs/Bool                whether the estimate can be trusted (validity.*)
+    ~/steering_offset          geometry_msgs/Vector3Stamped  x = steering-sensor offset (rad), y = its 1-sigma
     ~/model_output             geometry_msgs/TwistStamped    linear.y = vy, angular.z = r of the model
     ~/measurement              geometry_msgs/TwistStamped    linear.x = vx, linear.y = vy, angular.z = r at the CG
     /diagnostics               diagnostic_msgs/DiagnosticArray, statuses "<node name>: ..." (transplanter_ident.evaluation.health)
@@ -35,7 +37,6 @@ from collections.abc import Sequence
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import TwistStamped, Vector3Stamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType, JumpThreshold
 from rclpy.duration import Duration
@@ -53,6 +54,7 @@ from transplanter_ident.ekf.joint_ekf import Estimate, JointEKF
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler
 from transplanter_ident.epochs.epoch import Epoch, Rejection
 from transplanter_ident.evaluation.health import HealthMonitor, should_publish
+from transplanter_ident.evaluation.validity import monitor_for, sample_of
 from transplanter_ident.evaluation.windows import Throttle
 from transplanter_ident.ros import adapters
 from transplanter_ident.ros.parameters import (
@@ -81,6 +83,7 @@ class EstimatorNode(Node):
         topics = params.topics
         self._topics = {"velocity": topics.velocity, "heading": topics.heading, "steering": topics.steering}
         self._health = HealthMonitor(self._settings.thresholds, time.monotonic(), self._topics, name=self.get_name())
+        self._validity = monitor_for(params.config, params.validity)
         self._throttle = Throttle(5.0)
         self._joint = params.steering.joint_name
         latency_path = self._settings.latency_log
@@ -124,9 +127,8 @@ class EstimatorNode(Node):
         # No default QoS-event handlers on the outputs: each is a waitable the executor rebuilds into its
         # wait set on every wake-up (300 inputs/s), and reliable/volatile outputs suit any plain subscriber.
         quiet = PublisherEventCallbacks(use_default_callbacks=False)
-        self._publishers_out = tuple(self.create_publisher(kind, name, 10, event_callbacks=quiet) for kind, name in (
-            (Vector3Stamped, "~/cornering_stiffness"), (Vector3Stamped, "~/cornering_stiffness_std"),
-            (TwistStamped, "~/model_output"), (TwistStamped, "~/measurement")))
+        self._publishers_out = tuple(self.create_publisher(kind, name, 10, event_callbacks=quiet)
+                                     for kind, name in adapters.OUTPUT_TOPICS)
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", 10, event_callbacks=quiet)
 
     def _create_subscriptions(self) -> list[tuple[str, str, str]]:
@@ -208,24 +210,26 @@ class EstimatorNode(Node):
             self._reject(rejection)
         for epoch in epochs:
             estimate = self._ekf.step(epoch)
+            decision = self._validity.step(sample_of(epoch, estimate.row))
             self._health.on_estimate(epoch, estimate, time.monotonic())
+            self._health.on_validity(decision)
             if not should_publish(estimate.status):
                 self._warn(("status", estimate.status), f"epoch t={epoch.t:.3f}: {estimate.status.name}, "
                            "nothing published")
                 continue
-            if self._publish(epoch, estimate) and arrival is not None:
+            if self._publish(epoch, estimate, decision.valid) and arrival is not None:
                 latency = time.perf_counter() - arrival
                 self._health.on_latency(latency)
                 if self._latency_log is not None:
                     self._latency_log.write(f"{epoch.t:.9f} {latency:.9f}\n")
 
-    def _publish(self, epoch: Epoch, est: Estimate) -> bool:
+    def _publish(self, epoch: Epoch, est: Estimate, valid: bool) -> bool:
         values = adapters.output_values(epoch, est)
         if not all(math.isfinite(v) for v in values):
             self._health.on_unpublished()
             self._warn("nan", f"epoch t={epoch.t:.3f}: non-finite output withheld {values}")
             return False
-        self._outputs.fill(epoch.t, values)
+        self._outputs.fill(epoch.t, values, valid)
         for publisher, msg in zip(self._publishers_out, self._outputs.all(), strict=True):
             publisher.publish(msg)
         return True
@@ -268,6 +272,7 @@ class EstimatorNode(Node):
 
     def _restart(self) -> None:
         self._ekf.reset()
+        self._validity.reset()
         self._assembler.reset()
         self._health.reset_filter()
 
@@ -304,6 +309,7 @@ class EstimatorNode(Node):
         if settings.params.config.noise != self._settings.params.config.noise:
             self._ekf.set_noise(settings.params.config.noise)
         self._health.set_thresholds(settings.thresholds)
+        self._validity.settings = settings.params.validity
         self._flat, self._settings = flat, settings
         changed = ", ".join(f"{p.name}={plain(p.value)}" for p in ours)
         self.get_logger().info(f"parameters set: {changed}")

@@ -1,0 +1,201 @@
+"""Whether each estimate can be trusted: the validity decision of every epoch (DESIGN.md section 7).
+
+A precise-looking number that is wrong is the worst output, so an estimate is valid only when all
+of these hold over a window of data time (the same decision online and offline):
+
+* converged: the relative 1-sigma of Cf and Cr is small, and neither is pinned at a bound;
+* excited: the steering and the yaw rate varied enough (a held step identifies little);
+* consistent: the normalised innovation squared (NIS, chi^2 with 2 dof per epoch when the
+  filter's model and R are right) passes a windowed chi^2 test, and the whitened innovations are
+  not autocorrelated (an unconfigured GNSS delay, a wrong lever arm or a wrong R show there);
+* plausible: the heading is not a course over ground (then vy is zero by construction while the
+  vehicle turns), and the GNSS velocity agrees with the heading (an ENU/NED mix-up implies a
+  sideslip no transplanter has).
+
+Hysteresis: valid only after every check held for ``hold_on`` s; invalid once any has failed
+for ``hold_off`` s (at once for the plausibility and bound checks).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from transplanter_ident.config.parameters import EstimatorConfig, ValiditySettings
+from transplanter_ident.ekf.layout import (
+    O_CF,
+    O_CF_STD,
+    O_CR,
+    O_CR_STD,
+    O_E0,
+    O_NIS,
+    O_S00,
+    O_STATUS,
+    StepStatus,
+)
+from transplanter_ident.epochs.epoch import Epoch, EpochArrays
+
+#: statuses whose innovation is a proper one-step prediction error
+PREDICTED = frozenset({StepStatus.UPDATED, StepStatus.NONLINEAR, StepStatus.GATED})
+
+
+@dataclass(frozen=True)
+class Sample:
+    """What the decision reads of one epoch."""
+
+    t: float
+    status: StepStatus
+    cf: float
+    cr: float
+    cf_std: float
+    cr_std: float
+    steering: float
+    yaw_rate: float
+    speed: float
+    antenna_lateral_velocity: float
+    nis: float
+    whitened_vy: float  # e0 / sqrt(S00)
+
+
+@dataclass(frozen=True)
+class Decision:
+    """Valid or not, and why (the failing checks, most severe first)."""
+
+    valid: bool
+    reasons: tuple[str, ...]
+    hard: bool  # a plausibility or bound failure (an ERROR in /diagnostics)
+
+
+class ValidityMonitor:
+    """Feed every epoch in order with :meth:`step`; returns the decision for that epoch."""
+
+    def __init__(self, settings: ValiditySettings, bounds: tuple[float, float], lever: float) -> None:
+        self.settings = settings
+        self.bounds = bounds
+        self.lever = lever  # lr + antenna_x: how far behind the antenna the rear axle is
+        self.reset()
+
+    def reset(self) -> None:
+        self._window: deque[Sample] = deque()
+        self._valid = False
+        self._good_since: float | None = None
+        self._bad_since: float | None = None
+        self.last = Decision(False, ("no estimate yet",), False)
+
+    def step(self, sample: Sample) -> Decision:
+        """Add one epoch and decide."""
+        if self._window and sample.t <= self._window[-1].t:
+            self.reset()  # time went back (a replayed bag restarted)
+        self._window.append(sample)
+        while self._window[0].t < sample.t - self.settings.window:
+            self._window.popleft()
+        hard, soft = self._hard_failures(sample), self._soft_failures(sample)
+        self.last = self._hysteresis(sample.t, hard, soft)
+        return self.last
+
+    def _hysteresis(self, t: float, hard: list[str], soft: list[str]) -> Decision:
+        s = self.settings
+        if hard or soft:
+            self._good_since = None
+            self._bad_since = t if self._bad_since is None else self._bad_since
+            if hard or t - self._bad_since >= s.hold_off:
+                self._valid = False
+        else:
+            self._bad_since = None
+            self._good_since = t if self._good_since is None else self._good_since
+            if t - self._good_since >= s.hold_on:
+                self._valid = True
+        return Decision(self._valid, tuple(hard + soft), bool(hard))
+
+    def _hard_failures(self, sample: Sample) -> list[str]:
+        reasons = []
+        low, high = self.bounds
+        for name, value in (("Cf", sample.cf), ("Cr", sample.cr)):
+            if value <= low * 1.01 or value >= high / 1.01:
+                reasons.append(f"{name} pinned at a stiffness bound ({value:.0f} N/rad): a wrong frame, lever arm "
+                               "or steering sign?")
+        predicted = [w for w in self._window if w.status in PREDICTED and w.speed > 0.0]
+        if len(predicted) >= 5:
+            sideslip = sorted(abs(w.antenna_lateral_velocity) / w.speed for w in predicted)[len(predicted) // 2]
+            if sideslip > self.settings.max_sideslip:
+                reasons.append(f"implausible sideslip (median |vy/vx| {sideslip:.2f}): GNSS velocity and heading "
+                               "disagree; check frames.velocity / frames.heading (ENU or NED)")
+            if self._course_over_ground(predicted):
+                reasons.append("the heading looks like a course over ground (vy stays ~0 while the vehicle "
+                               "turns): use a dual-antenna heading")
+        return reasons
+
+    def _course_over_ground(self, window: list[Sample]) -> bool:
+        rms_r = math.sqrt(sum(w.yaw_rate ** 2 for w in window) / len(window))
+        rms_vy = math.sqrt(sum(w.antenna_lateral_velocity ** 2 for w in window) / len(window))
+        return rms_r > 0.05 and rms_vy < self.settings.course_ratio * abs(self.lever) * rms_r
+
+    def _soft_failures(self, sample: Sample) -> list[str]:
+        s = self.settings
+        reasons = []
+        if sample.status not in PREDICTED:
+            reasons.append(f"epoch status {sample.status.name}")
+        worst = max(sample.cf_std / sample.cf, sample.cr_std / sample.cr)
+        if not worst <= s.max_rel_std:
+            reasons.append(f"not converged (relative 1-sigma {worst:.3f} > {s.max_rel_std:g})")
+        window = list(self._window)
+        if len(window) < 5 or window[-1].t - window[0].t < 0.5 * s.window:
+            reasons.append("too little data in the window")
+            return reasons
+        nonlinear = sum(w.status is StepStatus.NONLINEAR for w in window) / len(window)
+        if nonlinear > s.max_nonlinear_fraction:
+            reasons.append(f"the tires left their linear range in {100 * nonlinear:.0f} % of the window: the "
+                           "linear stiffness does not describe them")
+        if _std([w.steering for w in window]) < s.min_steering_std and \
+                _std([w.yaw_rate for w in window]) < s.min_yaw_rate_std:
+            reasons.append("too little excitation (steering and yaw rate nearly constant)")
+        predicted = [w for w in window if w.status in PREDICTED and math.isfinite(w.nis)]
+        if len(predicted) >= 5:
+            total, dof = sum(w.nis for w in predicted), 2 * len(predicted)
+            if total > dof + s.nis_quantile_sigmas * math.sqrt(2.0 * dof):
+                reasons.append(f"innovations inconsistent with R and Q (mean NIS {total / len(predicted):.1f}, "
+                               "expected 2)")
+            rho = _lag1_autocorrelation([w.whitened_vy for w in predicted])
+            if rho > s.max_autocorrelation:
+                reasons.append(f"innovations correlated in time (lag-1 {rho:.2f}): an unconfigured GNSS delay "
+                               "(gnss.delay) or lever arm?")
+        return reasons
+
+
+def _std(values: list[float]) -> float:
+    mean = sum(values) / len(values)
+    return math.sqrt(sum((v - mean) ** 2 for v in values) / len(values))
+
+
+def _lag1_autocorrelation(values: list[float]) -> float:
+    mean = sum(values) / len(values)
+    centred = [v - mean for v in values]
+    power = sum(c * c for c in centred)
+    if power <= 0.0:
+        return 0.0
+    return sum(a * b for a, b in zip(centred, centred[1:], strict=False)) / power
+
+
+def sample_of(epoch: Epoch, row: np.ndarray) -> Sample:
+    """The decision's view of one epoch and its kernel output row (layout.O_*)."""
+    s00 = row[O_S00]
+    return Sample(t=epoch.t, status=StepStatus(int(row[O_STATUS])), cf=float(row[O_CF]), cr=float(row[O_CR]),
+                  cf_std=float(row[O_CF_STD]), cr_std=float(row[O_CR_STD]), steering=epoch.steering,
+                  yaw_rate=epoch.yaw_rate, speed=epoch.speed,
+                  antenna_lateral_velocity=float(epoch.antenna_lateral_velocity), nis=float(row[O_NIS]),
+                  whitened_vy=float(row[O_E0]) / math.sqrt(s00) if s00 > 0.0 else 0.0)
+
+
+def monitor_for(config: EstimatorConfig, settings: ValiditySettings) -> ValidityMonitor:
+    """A monitor with the filter's stiffness bounds and the lever arm of the rear axle to the antenna."""
+    return ValidityMonitor(settings, config.options.stiffness_bounds, config.vehicle.lr + config.vehicle.antenna_x)
+
+
+def decide_sequence(config: EstimatorConfig, settings: ValiditySettings, epochs: EpochArrays,
+                    outputs: np.ndarray) -> np.ndarray:
+    """The validity of every epoch of an offline run (replay), as the node decides it online."""
+    monitor = monitor_for(config, settings)
+    return np.array([monitor.step(sample_of(epochs[i], outputs[i])).valid for i in range(len(epochs))], dtype=bool)
