@@ -10,7 +10,7 @@ of these hold over a window of data time (the same decision online and offline):
   not autocorrelated (an unconfigured GNSS delay, a wrong lever arm or a wrong R show there);
 * plausible: the heading is not a course over ground (then vy is zero by construction while the
   vehicle turns), and the GNSS velocity agrees with the heading (an ENU/NED mix-up implies a
-  sideslip no transplanter has).
+  sideslip no transplanter has, or a course that turns against the heading).
 
 Hysteresis: valid only after every check held for ``hold_on`` s; invalid once any has failed
 for ``hold_off`` s (at once for the plausibility and bound checks).
@@ -123,6 +123,9 @@ class ValidityMonitor:
             if sideslip > self.settings.max_sideslip:
                 reasons.append(f"implausible sideslip (median |vy/vx| {sideslip:.2f}): GNSS velocity and heading "
                                "disagree; check frames.velocity / frames.heading (ENU or NED)")
+            if sideslip <= self.settings.max_sideslip and _frames_mixed(predicted):
+                reasons.append("the GNSS velocity turns against the heading (its direction changes at -r): "
+                               "check frames.velocity / frames.heading (ENU or NED)")
             if self._course_over_ground(predicted):
                 reasons.append("the heading looks like a course over ground (vy stays ~0 while the vehicle "
                                "turns): use a dual-antenna heading")
@@ -163,6 +166,25 @@ class ValidityMonitor:
                 reasons.append(f"innovations correlated in time (lag-1 {rho:.2f}): an unconfigured GNSS delay "
                                "(gnss.delay) or lever arm?")
         return reasons
+
+
+def _frames_mixed(window: list[Sample]) -> bool:
+    """Whether the antenna's sideslip turns at about -2 r, so that the course changes at -r.
+
+    That is what swapped east and north (or a reversed heading sense) look like; right frames give a
+    slope near 0.
+    """
+    num = den = 0.0
+    for a, b in zip(window, window[1:], strict=False):
+        dt = b.t - a.t
+        if dt <= 0.0:
+            continue
+        beta_a = math.atan2(a.antenna_lateral_velocity, a.speed)
+        beta_b = math.atan2(b.antenna_lateral_velocity, b.speed)
+        rate = math.remainder(beta_b - beta_a, 2.0 * math.pi) / dt
+        num += rate * b.yaw_rate
+        den += b.yaw_rate * b.yaw_rate
+    return den > 0.05 ** 2 * len(window) and num / den < -1.0
 
 
 def _std(values: list[float]) -> float:
