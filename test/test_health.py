@@ -18,6 +18,7 @@ from transplanter_ident.evaluation.health import (
     InputMonitor,
     should_publish,
 )
+from transplanter_ident.evaluation.validity import Decision
 from transplanter_ident.evaluation.windows import LatencyStats, RollingRms, Throttle, TimeWindow, percentile
 
 TH = HealthThresholds(stale_timeout=1.0, window=10.0, converged_rel_std=0.05, min_steering_rms=0.02,
@@ -50,6 +51,7 @@ def fed_monitor(now: float = 100.0, epochs: int = 50, **estimate_args: object) -
         for name in ("velocity", "heading", "steering"):
             monitor.on_message(name, t)
         monitor.on_estimate(epoch(t), estimate(t, **estimate_args), t)
+        monitor.on_validity(Decision(True, (), False))
     return monitor
 
 

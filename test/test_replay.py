@@ -64,8 +64,10 @@ def test_round_trip_identifies_the_stiffness(sine_csv) -> None:
     header, rows = read_csv(path)
     assert header == list(CSV_COLUMNS)
     assert header == ["t", "vx", "vy_meas", "r_meas", "delta", "vy_model", "r_model", "cf", "cr", "cf_std",
-                      "cr_std"]
-    assert rows.shape == (600, 11)
+                      "cr_std", "steering_offset", "valid"]
+    assert rows.shape == (600, 13)
+    assert set(np.unique(rows[:, 12])) == {0.0, 1.0} and rows[-1, 12] == 1.0  # valid: not at first, at the end
+    assert abs(rows[-1, 11]) < 0.002  # the simulated drive has no steering offset (rad)
     assert np.all(np.diff(rows[:, 0]) > 0)
     cf, cr = rows[-1, 7], rows[-1, 8]
     assert abs(cf / 8000.0 - 1.0) < TOLERANCE, cf
