@@ -206,12 +206,12 @@ class RosSession:
     def alive(self) -> bool:
         return self.process is not None and self.process.poll() is None
 
-    def stop_estimator(self, timeout: float = 15.0) -> int | None:
-        """SIGINT, then wait; SIGKILL if it hangs. Returns the exit code."""
+    def stop_estimator(self, timeout: float = 15.0, stop_signal: str = "SIGINT") -> int | None:
+        """SIGINT (or ``stop_signal``), then wait; SIGKILL if it hangs. Returns the exit code."""
         if self.process is None:
             return None
         if self.process.poll() is None:
-            self.process.send_signal(signal.SIGINT)
+            self.process.send_signal(getattr(signal, stop_signal))
             try:
                 self.process.wait(timeout)
             except subprocess.TimeoutExpired:
@@ -358,7 +358,7 @@ def scenario(spec: dict[str, Any]) -> dict[str, Any]:
             _run_step(session, step, marks, results)
         alive_at_end = session.alive()
     finally:
-        returncode = session.stop_estimator()
+        returncode = session.stop_estimator(stop_signal=spec.get("stop_signal", "SIGINT"))
         records = session.records
         log = session.log_text()
         session.close()

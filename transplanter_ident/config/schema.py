@@ -181,6 +181,11 @@ SCHEMA: tuple[Param, ...] = (
     _float("ekf.change_process_noise", 2.0e-2, "(ln C)^2/s", "stiffness Q density (relative) for change_hold "
            "after a change alarm", 1.0e-8, 10.0),
     _float("ekf.change_hold", 4.0, "s", "how long the raised stiffness Q lasts after a change alarm", 0.01, 600.0),
+    # the learned state across restarts (ekf/persistence.py)
+    _str("persistence.file", "$ROS_HOME/transplanter_ident/{node}.yaml", "where the learned stiffness, offset and "
+         "covariance are kept across restarts ($ROS_HOME: ~/.ros when unset; {node}: the node name); empty: off"),
+    _float("persistence.period", 60.0, "s", "how often the learned state is saved (also at shutdown), when valid",
+           1.0, 86400.0),
     # the validity decision (evaluation/validity.py; config.parameters.ValiditySettings)
     _float("validity.window", 10.0, "s", "data span over which excitation and innovation consistency are judged",
            1.0, 600.0, read_only=False),

@@ -45,6 +45,7 @@ from transplanter_ident.ekf.layout import (
     O_STATUS,
     O_VY,
     O_VY_MODEL,
+    PARAMETER_STATES,
     S_ANTENNA_X,
     S_CHANGE_DETECTION,
     S_CHANGE_HOLD,
@@ -74,6 +75,7 @@ from transplanter_ident.ekf.layout import (
     StepStatus,
 )
 from transplanter_ident.ekf.model import vehicle_array, work_buffer
+from transplanter_ident.ekf.persistence import LearnedState
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
 
 
@@ -221,6 +223,23 @@ class JointEKF:
         config = EstimatorConfig(vehicle=self._config.vehicle, options=self._config.options, noise=noise)
         arrays = FilterArrays.from_config(config)
         self._config, self._arrays = config, arrays
+
+    def learned_state(self, stamp: float) -> LearnedState:
+        """The parameter states [theta_f, theta_r, b] and their covariance (what persistence saves)."""
+        block = self.covariance[np.ix_(PARAMETER_STATES, PARAMETER_STATES)]
+        return LearnedState((float(self.state[X_THETA_F]), float(self.state[X_THETA_R])),
+                            float(self.state[X_OFFSET]), tuple(tuple(float(v) for v in row) for row in block), stamp)
+
+    def restore(self, learned: LearnedState) -> None:
+        """Start from saved parameter states (after :meth:`reset`); a fixed offset stays as configured."""
+        self.state[X_THETA_F], self.state[X_THETA_R] = learned.theta
+        block = np.array(learned.covariance, dtype=np.float64)
+        if not self._config.options.estimate_steering_offset:
+            block[2, :] = block[:, 2] = 0.0
+        else:
+            self.state[X_OFFSET] = learned.offset
+        index = np.ix_(PARAMETER_STATES, PARAMETER_STATES)
+        self.covariance[index] = block
 
     def step(self, epoch: Epoch) -> Estimate:
         """Filter one epoch (eq. 12) and return the estimate."""

@@ -153,6 +153,7 @@ class HealthMonitor:
         self._steering_rms = RollingRms(thresholds.window)
         self._yaw_rate_rms = RollingRms(thresholds.window)
         self._events = {key: TimeWindow(thresholds.window) for key in ("gated", "rejected", "diverged", "epoch")}
+        self._persistence = "off"
 
     def set_thresholds(self, thresholds: HealthThresholds) -> None:
         """New thresholds at run time; the windows keep their samples."""
@@ -208,6 +209,16 @@ class HealthMonitor:
             self._steering_rms.add(epoch.t, epoch.steering)
             self._yaw_rate_rms.add(epoch.t, epoch.yaw_rate)
 
+    def on_persistence(self, status: str) -> None:
+        """What the persistence of the learned state last did (restored, saved, or why it started cold)."""
+        self._persistence = status
+
+    def _persistence_report(self) -> HealthReport:
+        status = self._persistence
+        refused = status.startswith("cold start:") and "no saved state" not in status
+        level = WARN if refused or status.startswith("cannot") else OK
+        return HealthReport(f"{self.name}: persistence", level, status, (("status", status),))
+
     def on_validity(self, decision: Decision) -> None:
         """The validity decision of the latest epoch (evaluation.validity)."""
         self._filter.validity = decision
@@ -235,6 +246,7 @@ class HealthMonitor:
         """The current status lines: one per input, then motion, measurements, convergence, excitation, latency."""
         reports = [self._input_report(self.inputs[name], now) for name in INPUTS]
         reports += [self._motion_report(), self._measurement_report(now), self._validity_report(),
+                    self._persistence_report(),
                     self._convergence_report(),
                     self._excitation_report(), self._latency_report()]
         return reports

@@ -48,9 +48,10 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
-from transplanter_ident.config.params_file import EstimatorParams, ParamsError
+from transplanter_ident.config.params_file import EstimatorParams, ParamsError, parameter_value
 from transplanter_ident.config.schema import PARAMS, SCHEMA, is_ros_builtin, unknown_key_message
 from transplanter_ident.ekf.joint_ekf import Estimate, JointEKF
+from transplanter_ident.ekf.persistence import Keeper, LearnedState, default_path
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler
 from transplanter_ident.epochs.epoch import Epoch, Rejection
 from transplanter_ident.evaluation.health import HealthMonitor, should_publish
@@ -84,6 +85,10 @@ class EstimatorNode(Node):
         self._topics = {"velocity": topics.velocity, "heading": topics.heading, "steering": topics.steering}
         self._health = HealthMonitor(self._settings.thresholds, time.monotonic(), self._topics, name=self.get_name())
         self._validity = monitor_for(params.config, params.validity)
+        self._keeper = Keeper(default_path(str(parameter_value(params, "persistence.file")), self.get_name()),
+                              float(parameter_value(params, "persistence.period")), params.config)
+        self._restore_learned_state()
+        self._learned: LearnedState | None = None  # the latest valid parameter states, to be saved
         self._throttle = Throttle(5.0)
         self._joint = params.steering.joint_name
         latency_path = self._settings.latency_log
@@ -211,6 +216,8 @@ class EstimatorNode(Node):
         for epoch in epochs:
             estimate = self._ekf.step(epoch)
             decision = self._validity.step(sample_of(epoch, estimate.row))
+            if decision.valid:
+                self._learned = self._ekf.learned_state(epoch.t)
             self._health.on_estimate(epoch, estimate, time.monotonic())
             self._health.on_validity(decision)
             if not should_publish(estimate.status):
@@ -249,6 +256,7 @@ class EstimatorNode(Node):
     # ------------------------------------------------------------------ diagnostics, reset, parameters
 
     def _publish_diagnostics(self) -> None:
+        self._save_learned_state()
         self._check_publisher_types()
         reports = self._health.report(time.monotonic())
         self._pub_diagnostics.publish(adapters.diagnostic_array(self.get_clock().now().to_msg(), reports,
@@ -258,9 +266,12 @@ class EstimatorNode(Node):
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         self._restart()
-        self.get_logger().info("filter and assembler restarted (~/reset)")
+        self._learned = None
+        self._keeper.forget()
+        self._health.on_persistence(self._keeper.status)
+        self.get_logger().info("filter and assembler restarted, saved state deleted (~/reset)")
         response.success = True
-        response.message = "filter and assembler restarted"
+        response.message = "filter and assembler restarted; saved state deleted"
         return response
 
     def _on_time_jump(self, jump: Any) -> None:
@@ -269,6 +280,18 @@ class EstimatorNode(Node):
         self._restart()
         self.get_logger().warning(f"ROS time jumped back by {-jump.delta.nanoseconds / 1e9:.3f} s (a replayed bag "
                                   "restarted?): filter and assembler restarted")
+
+    def _restore_learned_state(self) -> None:
+        learned = self._keeper.restore()
+        if learned is not None:
+            self._ekf.restore(learned)
+        self.get_logger().info(f"persistence: {self._keeper.status}")
+        self._health.on_persistence(self._keeper.status)
+
+    def _save_learned_state(self, *, force: bool = False) -> None:
+        if self._learned is not None and (force or self._keeper.due(time.monotonic())):
+            self._keeper.save(self._learned, time.monotonic())
+            self._health.on_persistence(self._keeper.status)
 
     def _restart(self) -> None:
         self._ekf.reset()
@@ -315,6 +338,7 @@ class EstimatorNode(Node):
         self.get_logger().info(f"parameters set: {changed}")
 
     def destroy_node(self) -> None:
+        self._save_learned_state(force=True)
         if self._latency_log is not None:
             self._latency_log.close()
             self._latency_log = None
