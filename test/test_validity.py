@@ -16,9 +16,11 @@ from helpers import sim_samples
 
 from transplanter_ident.config.parameters import EstimatorConfig, ValiditySettings
 from transplanter_ident.ekf.joint_ekf import run_sequence
+from transplanter_ident.ekf.layout import StepStatus
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
 from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.evaluation.validity import (
+    Identifiability,
     Sample,
     ValidityMonitor,
     decide_sequence,
@@ -139,4 +141,16 @@ def test_hysteresis_needs_hold_on_to_become_valid_and_hold_off_to_drop() -> None
     assert all(flags[first:])
 
 
-from transplanter_ident.ekf.layout import StepStatus  # noqa: E402
+
+
+def test_identifiability_matches_an_eigendecomposition() -> None:
+    """The weak direction and its sigma are numpy's eigendecomposition; scale and ratio sigmas propagate."""
+    rel_f, rel_r, rho = 0.12, 0.10, 0.99
+    known = Identifiability.of(rel_f, rel_r, rho)
+    cov = np.array([[rel_f ** 2, rho * rel_f * rel_r], [rho * rel_f * rel_r, rel_r ** 2]])
+    values, vectors = np.linalg.eigh(cov)
+    assert known.weak_std == pytest.approx(math.sqrt(values[-1]), rel=1e-12)
+    assert abs(np.dot(known.weak_direction, vectors[:, -1])) == pytest.approx(1.0, rel=1e-12)
+    assert known.ratio_std == pytest.approx(math.sqrt(np.array([1, -1]) @ cov @ np.array([1, -1])), rel=1e-12)
+    assert known.scale_std == pytest.approx(0.5 * math.sqrt(np.array([1, 1]) @ cov @ np.array([1, 1])), rel=1e-12)
+    assert known.condition == pytest.approx(values[-1] / values[0], rel=1e-9)

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from transplanter_ident.ekf.joint_ekf import Estimate
 from transplanter_ident.ekf.layout import StepStatus
 from transplanter_ident.epochs.epoch import Epoch, Rejection
-from transplanter_ident.evaluation.validity import Decision
+from transplanter_ident.evaluation.validity import Decision, Identifiability
 from transplanter_ident.evaluation.windows import LatencyStats, RollingRms, TimeWindow
 
 OK, WARN, ERROR = 0, 1, 2
@@ -334,16 +334,20 @@ class HealthMonitor:
         rel_r = est.cornering_stiffness_rear_std / cr if cr > 0.0 else math.inf
         limit = self.thresholds.converged_rel_std
         converged = f.updates > 0 and rel_f <= limit and rel_r <= limit
+        known = Identifiability.of(rel_f, rel_r, est.stiffness_correlation)
         values = (("converged", str(converged).lower()), ("cf", f"{cf:.1f}"), ("cr", f"{cr:.1f}"),
                   ("cf_rel_std", f"{rel_f:.4f}"), ("cr_rel_std", f"{rel_r:.4f}"), ("threshold", f"{limit:g}"),
-                  ("updates", str(f.updates)))
+                  ("updates", str(f.updates)), ("correlation", f"{est.stiffness_correlation:.5f}"),
+                  ("scale_rel_std", f"{known.scale_std:.4g}"), ("ratio_rel_std", f"{known.ratio_std:.4g}"),
+                  ("weak_direction", f"{known.weak_direction[0]:+.3f} {known.weak_direction[1]:+.3f}"),
+                  ("weak_rel_std", f"{known.weak_std:.4g}"), ("identifiability", known.describe()))
         if converged:
             return HealthReport(name, OK, f"converged: Cf {cf:.0f} +- {100 * rel_f:.1f} %, "
                                 f"Cr {cr:.0f} +- {100 * rel_r:.1f} %", values)
         if f.updates == 0:
             return HealthReport(name, WARN, "no stiffness update yet", values)
         return HealthReport(name, WARN, f"not converged: relative std Cf {100 * rel_f:.1f} %, Cr {100 * rel_r:.1f} % "
-                            f"(threshold {100 * limit:g} %)", values)
+                            f"(threshold {100 * limit:g} %); {known.describe()}", values)
 
     def _excitation_report(self) -> HealthReport:
         th = self.thresholds
