@@ -1,0 +1,51 @@
+"""The numba disk cache gives the right kernel for each state size (issue #9, item 5).
+
+The per-size closures are not cached (numba keys a cached closure by name and source line, which
+every size shares); the module-level entries are. Here kernels of both state sizes are compiled
+into one fresh cache folder and loaded back from it, in alternating orders, in separate processes:
+every run must give the same numbers as the first, compiling one.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+PROGRAM = """
+import json, sys
+sys.path.insert(0, {test!r})
+from helpers import simulate_epochs
+from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions
+from transplanter_ident.ekf.joint_ekf import run_sequence, sequence_objective
+from transplanter_ident.sim.simulator import SimConfig
+_, epochs = simulate_epochs(SimConfig(duration=20.0, seed=1))
+values = {{}}
+for measurement in sys.argv[1].split(","):
+    config = EstimatorConfig(options=FilterOptions(measurement=measurement))
+    values[measurement] = [sequence_objective(config, epochs, "nll"), float(run_sequence(config, epochs)[-1, 3])]
+print(json.dumps(values))
+"""
+
+
+def run(order: str, cache: Path) -> dict[str, list[float]]:
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "PYTHONPATH": str(ROOT)}
+    result = subprocess.run([sys.executable, "-c", PROGRAM.format(test=str(ROOT / "test")), order],
+                            capture_output=True, text=True, timeout=900, env=env, cwd=ROOT)
+    assert result.returncode == 0, result.stderr[-2000:]
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def test_both_state_sizes_load_their_own_kernels_from_one_cache_folder(tmp_path: Path) -> None:
+    cache = tmp_path / "numba-cache"
+    first = run("heading,yaw_rate", cache)  # compiles both sizes into the folder
+    assert any(cache.rglob("*.nbi")), "nothing was cached"
+    assert first["heading"] != first["yaw_rate"]  # the two filters do differ, so a mix-up would show
+    for order in ("yaw_rate,heading", "heading", "yaw_rate", "heading,yaw_rate"):  # loaded back, alternately
+        again = run(order, cache)
+        for measurement, values in again.items():
+            assert values == first[measurement], (order, measurement)
