@@ -1,0 +1,227 @@
+"""Where the tuning objective (eq. 21 or the NLL, per bag) is evaluated: here, a process pool or a Dask cluster.
+
+A *backend* runs two kinds of work, always returning results in the order asked:
+
+* :meth:`Backend.map`: one call per item (decoding bags into epochs);
+* :meth:`Backend.evaluate`: the objective of a batch of candidates (log10 Q/R, eq. 22) on each
+  of several bags, as a (bags, candidates) array. Each bag's candidates are split into
+  contiguous chunks, about four per parallel slot in proportion to the bag's epochs, and the
+  chunks run as independent tasks, largest first.
+
+Every candidate's value comes from the same compiled kernel (``TuningProblem``'s batch
+objective), which runs each candidate on its own copies of the data: a value does not depend
+on which chunk, process or machine computed it. So the tuning result for a seed is the same,
+bit for bit, whatever the number of jobs or the cluster (the bags are summed in a fixed order
+by the caller).
+
+* :class:`SerialBackend` (``--jobs 1``): in this process, on one numba thread;
+* :class:`ProcessBackend` (``--jobs N``): ``concurrent.futures.ProcessPoolExecutor`` with the
+  ``forkserver`` start method (``spawn`` where there is none), N worker processes of one numba
+  thread each, started on first use. Each worker loads the compiled kernels from numba's disk
+  cache. A task carries its bag's epochs (56 bytes per epoch), which costs far less than
+  filtering them;
+* :class:`DaskBackend` (``--dask ADDRESS``): a ``dask.distributed`` cluster; each bag is
+  scattered to the workers once, and chunks are submitted as tasks (one numba thread each).
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+import os
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import Executor, ProcessPoolExecutor
+from typing import Any, Protocol
+
+import numpy as np
+
+from transplanter_ident.tuning.problem import TuningProblem
+
+#: chunks per parallel slot (more balances uneven tasks better, fewer costs less overhead)
+CHUNKS_PER_SLOT = 4
+
+
+def default_jobs() -> int:
+    """The number of cores this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def _single_thread() -> None:
+    """Compiled kernels in this thread use one numba thread (a worker is one slot)."""
+    import numba
+
+    numba.set_num_threads(1)
+
+
+def evaluate_chunk(problem: TuningProblem, positions: np.ndarray) -> np.ndarray:
+    """The objective of ``positions`` (m, D) on one bag, on one numba thread (a worker task)."""
+    _single_thread()
+    return np.asarray(problem(positions), dtype=np.float64)
+
+
+def plan_chunks(sizes: Sequence[int], candidates: int, slots: int) -> list[tuple[int, int, int]]:
+    """Tasks ``(bag, first, stop)``: each bag's candidates in contiguous chunks, largest task first.
+
+    A bag gets about ``CHUNKS_PER_SLOT * slots`` chunks in proportion to its share of the epochs
+    (at least one, at most one per candidate); with one slot every bag is one task.
+    """
+    total = sum(sizes)
+    tasks: list[tuple[int, int, int]] = []
+    for bag, size in enumerate(sizes):
+        wanted = 1 if slots <= 1 or total <= 0 else math.ceil(CHUNKS_PER_SLOT * slots * size / total)
+        chunks = max(1, min(candidates, wanted))
+        edges = np.linspace(0, candidates, chunks + 1).round().astype(int)
+        tasks += [(bag, int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True) if b > a]
+    tasks.sort(key=lambda task: (-(task[2] - task[1]) * sizes[task[0]], task[0], task[1]))
+    return tasks
+
+
+class Backend(Protocol):
+    """Runs the tuner's work; see the module docstring."""
+
+    @property
+    def slots(self) -> int:
+        """Tasks that run at the same time."""
+
+    def map(self, fn: Callable[..., Any], items: Iterable[tuple[Any, ...]]) -> list[Any]:
+        """``[fn(*item) for item in items]``, possibly in parallel, in order."""
+
+    def evaluate(self, problems: Sequence[TuningProblem], positions: np.ndarray) -> np.ndarray:
+        """(len(problems), m) objective values of the candidates ``positions`` (m, D)."""
+
+    def close(self) -> None:
+        """Release workers and connections."""
+
+
+def _assemble(problems: Sequence[TuningProblem], positions: np.ndarray, tasks: list[tuple[int, int, int]],
+              results: Sequence[np.ndarray]) -> np.ndarray:
+    values = np.full((len(problems), len(positions)), np.nan)
+    for (bag, first, stop), result in zip(tasks, results, strict=True):
+        values[bag, first:stop] = result
+    return values
+
+
+class SerialBackend:
+    """Everything in this process, one numba thread (``--jobs 1``)."""
+
+    slots = 1
+
+    def map(self, fn: Callable[..., Any], items: Iterable[tuple[Any, ...]]) -> list[Any]:
+        """In order, here."""
+        return [fn(*item) for item in items]
+
+    def evaluate(self, problems: Sequence[TuningProblem], positions: np.ndarray) -> np.ndarray:
+        """One call per bag, here, on one numba thread (the caller's thread count is restored)."""
+        import numba
+
+        previous = numba.get_num_threads()
+        try:
+            return np.vstack([evaluate_chunk(p, positions) for p in problems]) if problems else np.empty((0, 0))
+        finally:
+            numba.set_num_threads(previous)
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+def _pool_context() -> multiprocessing.context.BaseContext:
+    methods = multiprocessing.get_all_start_methods()
+    return multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
+
+
+class ProcessBackend:
+    """A pool of ``jobs`` worker processes (``--jobs N``), started on first use."""
+
+    def __init__(self, jobs: int) -> None:
+        if jobs < 1:
+            raise ValueError(f"jobs must be >= 1, got {jobs}")
+        self.jobs = jobs
+        self._pool: Executor | None = None
+
+    @property
+    def slots(self) -> int:
+        """The number of worker processes."""
+        return self.jobs
+
+    def _executor(self) -> Executor:
+        if self._pool is None:
+            self._pool = ProcessPoolExecutor(self.jobs, mp_context=_pool_context(), initializer=_single_thread)
+        return self._pool
+
+    def map(self, fn: Callable[..., Any], items: Iterable[tuple[Any, ...]]) -> list[Any]:
+        """On the pool, in order (a single item runs here, without starting the pool)."""
+        items = list(items)
+        if len(items) <= 1:
+            return [fn(*item) for item in items]
+        pool = self._executor()
+        return [f.result() for f in [pool.submit(fn, *item) for item in items]]
+
+    def evaluate(self, problems: Sequence[TuningProblem], positions: np.ndarray) -> np.ndarray:
+        """Chunks of every bag on the pool."""
+        positions = np.ascontiguousarray(positions, dtype=np.float64)
+        tasks = plan_chunks([len(p.kernel_input) for p in problems], len(positions), self.slots)
+        pool = self._executor()
+        futures = [pool.submit(evaluate_chunk, problems[bag], positions[a:b]) for bag, a, b in tasks]
+        return _assemble(problems, positions, tasks, [f.result() for f in futures])
+
+    def close(self) -> None:
+        """Stop the workers."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+
+class DaskBackend:
+    """A ``dask.distributed`` cluster at ``address`` (``--dask tcp://host:8786``)."""
+
+    def __init__(self, address: str, *, timeout: float = 30.0) -> None:
+        from distributed import Client
+
+        try:
+            self._client = Client(address, timeout=timeout, set_as_default=False)
+        except OSError as exc:
+            raise ValueError(f"--dask {address}: cannot connect to the Dask scheduler: {exc}") from None
+        self.address = address
+        self._scattered: dict[int, tuple[TuningProblem, Any]] = {}
+
+    @property
+    def slots(self) -> int:
+        """Worker threads in the cluster (at least 1)."""
+        return max(1, sum(self._client.nthreads().values()))
+
+    def map(self, fn: Callable[..., Any], items: Iterable[tuple[Any, ...]]) -> list[Any]:
+        """On the cluster, in order."""
+        futures = [self._client.submit(fn, *item, pure=False) for item in items]
+        return self._client.gather(futures)
+
+    def _remote(self, problem: TuningProblem) -> Any:
+        """The problem's future on the cluster (scattered to every worker once)."""
+        key = id(problem)
+        if key not in self._scattered:
+            future = self._client.scatter(problem, broadcast=True, hash=False)
+            self._scattered[key] = (problem, future)  # holding the problem keeps its id unique
+        return self._scattered[key][1]
+
+    def evaluate(self, problems: Sequence[TuningProblem], positions: np.ndarray) -> np.ndarray:
+        """Chunks of every bag as cluster tasks."""
+        positions = np.ascontiguousarray(positions, dtype=np.float64)
+        tasks = plan_chunks([len(p.kernel_input) for p in problems], len(positions), self.slots)
+        futures = [self._client.submit(evaluate_chunk, self._remote(problems[bag]), positions[a:b], pure=False)
+                   for bag, a, b in tasks]
+        return _assemble(problems, positions, tasks, self._client.gather(futures))
+
+    def close(self) -> None:
+        """Release the scattered data and disconnect (the cluster keeps running)."""
+        self._scattered.clear()
+        self._client.close()
+
+
+def open_backend(jobs: int | None = None, dask_address: str | None = None) -> Backend:
+    """The backend for ``--jobs`` / ``--dask``: Dask if an address is given, else a pool, or serial for 1 job."""
+    if dask_address:
+        return DaskBackend(dask_address)
+    jobs = default_jobs() if jobs is None else jobs
+    return SerialBackend() if jobs <= 1 else ProcessBackend(jobs)
