@@ -39,6 +39,8 @@ from transplanter_ident.tuning.problem import TuningProblem
 
 #: chunks per parallel slot (more balances uneven tasks better, fewer costs less overhead)
 CHUNKS_PER_SLOT = 4
+#: seconds to wait for a Dask scheduler
+DASK_CONNECT_TIMEOUT = 20.0
 
 
 def default_jobs() -> int:
@@ -177,13 +179,15 @@ class ProcessBackend:
 class DaskBackend:
     """A ``dask.distributed`` cluster at ``address`` (``--dask tcp://host:8786``)."""
 
-    def __init__(self, address: str, *, timeout: float = 30.0) -> None:
+    def __init__(self, address: str, *, timeout: float | None = None) -> None:
         from distributed import Client
 
+        timeout = DASK_CONNECT_TIMEOUT if timeout is None else timeout
         try:
             self._client = Client(address, timeout=timeout, set_as_default=False)
-        except OSError as exc:
-            raise ValueError(f"--dask {address}: cannot connect to the Dask scheduler: {exc}") from None
+        except (OSError, ValueError) as exc:
+            reason = " ".join(str(exc).split()) or type(exc).__name__
+            raise ValueError(f"--dask {address}: cannot connect to the Dask scheduler ({reason})") from None
         self.address = address
         self._scattered: dict[int, tuple[TuningProblem, Any]] = {}
 
