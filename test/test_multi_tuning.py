@@ -102,6 +102,21 @@ def test_process_pool_values_equal_serial_values_bit_for_bit(sim_epochs) -> None
         pool.close()
 
 
+def test_process_backend_runs_calls_here_and_on_workers_in_order() -> None:
+    backend = ProcessBackend(3)
+    try:
+        assert backend.map(pow, [(i, 2) for i in range(25)]) == [i * i for i in range(25)]
+        assert backend.map(pow, [(3, 3)]) == [27] and backend.map(pow, []) == []
+        with pytest.raises(ZeroDivisionError):
+            backend.map(divmod, [(1, 1), (2, 1), (1, 0), (4, 2), (5, 1)])
+        assert backend.map(divmod, [(7, 2), (9, 4)]) == [(3, 1), (2, 1)]  # still usable
+    finally:
+        backend.close()
+    assert ProcessBackend(1).map(pow, [(2, 5), (2, 6)]) == [32, 64]  # one job: no pool at all
+    with pytest.raises(ValueError, match="jobs"):
+        ProcessBackend(0)
+
+
 def test_serial_backend_restores_the_thread_count(sim_epochs) -> None:  # noqa: ANN001
     import numba
 

@@ -135,6 +135,16 @@ def _write(path: Path, key: str, columns: np.ndarray, truth: Truth | None) -> st
     return ""
 
 
+def cached_bag_epochs(bag: str, params: EstimatorParams, cache_dir: str | Path) -> DecodedBag | None:
+    """The bag's epochs if the cache holds them (valid and for this key), else None; never decodes."""
+    try:
+        key = cache_key(bag, params)
+    except OSError:
+        return None
+    cached = _read(cache_path(bag, key, Path(cache_dir)), key)
+    return DecodedBag(bag, cached[0], cached[1], "cache") if cached is not None else None
+
+
 def load_bag_epochs(bag: str, params: EstimatorParams, cache_dir: str | Path | None = None) -> DecodedBag:
     """The bag's epochs and ground truth: from the cache if it holds them, else decoded and cached.
 

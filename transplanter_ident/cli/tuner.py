@@ -30,6 +30,7 @@ import argparse
 import os
 import sys
 from collections.abc import Callable, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -43,6 +44,7 @@ from transplanter_ident.tuning.parallel import (
     SerialBackend,
     default_jobs,
     open_backend,
+    warm_kernels,
 )
 from transplanter_ident.tuning.problem import OBJECTIVES
 from transplanter_ident.tuning.pso import IterationRecord
@@ -170,10 +172,17 @@ def cache_dir(args: argparse.Namespace) -> Path | None:
 def load_bags(bags: Sequence[str], params: EstimatorParams, backend: Backend, cache: Path | None,
               stream: Any = None) -> list[Any]:
     """Each bag's ``bags.cache.DecodedBag`` (decoded in parallel on ``backend``; one line each on stderr)."""
-    from transplanter_ident.bags.cache import load_bag_epochs  # rosbags only where bags are read
+    from transplanter_ident.bags.cache import (  # rosbags only where bags are read
+        cached_bag_epochs,
+        load_bag_epochs,
+    )
 
     out = stream if stream is not None else sys.stderr
-    decoded = backend.map(load_bag_epochs, [(bag, params, cache) for bag in bags])
+    decoded = [cached_bag_epochs(bag, params, cache) if cache is not None else None for bag in bags]
+    missing = [i for i, item in enumerate(decoded) if item is None]
+    for i, item in zip(missing, backend.map(load_bag_epochs, [(bags[i], params, cache) for i in missing]),
+                       strict=True):
+        decoded[i] = item
     for item in decoded:
         count = len(item.columns)
         if count < MIN_EPOCHS:
@@ -193,8 +202,10 @@ def _run(args: argparse.Namespace) -> int:
         require_pyplot()  # fail before the search, not after it
     params = load_parameters(args.params_file)
     jobs = args.jobs if args.jobs is not None else default_jobs()
-    local = SerialBackend() if jobs <= 1 else ProcessBackend(jobs)
+    local = SerialBackend() if jobs <= 1 else ProcessBackend(jobs, warm_up=partial(warm_kernels, params.config))
     remote = open_backend(dask_address=args.dask) if args.dask else local
+    if isinstance(remote, ProcessBackend):
+        remote.start()  # the workers load the kernels while the bags are read here
     try:
         return _tune_bags(args, params, local, remote)
     finally:
