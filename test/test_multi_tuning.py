@@ -94,12 +94,33 @@ def test_process_pool_values_equal_serial_values_bit_for_bit(sim_epochs) -> None
     x = _positions(serial, 9, seed=4)
     pool = ProcessBackend(2)
     try:
+        pool.wait_ready()  # so that the worker computes some of the chunks
+        assert pool.ready()
         parallel = MultiBagProblem.from_epochs(config, sim_epochs, "mae", pool)
         np.testing.assert_array_equal(parallel.per_bag(x), serial.per_bag(x))
         np.testing.assert_array_equal(parallel(x), serial(x))
         assert pool.map(math.hypot, [(3.0, 4.0), (5.0, 12.0)]) == [5.0, 13.0]
     finally:
         pool.close()
+
+
+@pytest.mark.parametrize("algorithm", ["ipso", "cmaes"])
+def test_tuning_on_a_ready_pool_equals_serial_tuning(sim_epochs, algorithm: str) -> None:  # noqa: ANN001
+    from transplanter_ident.tuning.tune import tune_problem
+
+    config = EstimatorParams().config
+    serial = tune_problem(MultiBagProblem.from_epochs(config, sim_epochs, "nll"), algorithm=algorithm,
+                          particles=6, iterations=4, seed=8)
+    pool = ProcessBackend(2)
+    try:
+        pool.wait_ready()
+        parallel = tune_problem(MultiBagProblem.from_epochs(config, sim_epochs, "nll", pool), algorithm=algorithm,
+                                particles=6, iterations=4, seed=8)
+    finally:
+        pool.close()
+    assert parallel.result.fitness == serial.result.fitness
+    np.testing.assert_array_equal(parallel.result.position, serial.result.position)
+    assert [h.best_fitness for h in parallel.result.history] == [h.best_fitness for h in serial.result.history]
 
 
 def test_process_backend_runs_calls_here_and_on_workers_in_order() -> None:
