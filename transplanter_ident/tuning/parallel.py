@@ -31,6 +31,7 @@ import math
 import multiprocessing
 import os
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Executor, Future, ProcessPoolExecutor, wait
@@ -218,18 +219,22 @@ class ProcessBackend:
         pending = deque(range(len(calls)))
         lock = threading.Lock()
         handed_out: list[tuple[int, Future]] = []
+        reserved = [0]  # calls taken for a worker (appended to handed_out right after submitting)
         pool = self._executor() if len(calls) > 1 else None
         if pool is not None and not wait_for_workers:
             self.start()
             pool = pool if self.ready() else None
 
-        def take() -> int | None:
+        def take(for_worker: bool) -> int | None:
             with lock:
-                return pending.popleft() if pending else None
+                if not pending:
+                    return None
+                reserved[0] += for_worker
+                return pending.popleft()
 
         def hand_out(_: Future | None = None) -> None:
-            index = take()
-            if index is None or pool is None:
+            index = take(True)
+            if index is None:
                 return
             fn, args = calls[index]
             future = pool.submit(fn, *args)
@@ -239,15 +244,24 @@ class ProcessBackend:
 
         for _ in range(WORKER_QUEUE * (self.jobs - 1) if pool is not None else 0):
             hand_out()
-        while (index := take()) is not None:
-            fn, args = calls[index]
-            results[index] = fn(*args)
-        while True:  # the workers' last calls (a callback may still be handing out one more)
+        try:
+            while (index := take(False)) is not None:
+                fn, args = calls[index]
+                results[index] = fn(*args)
+        except BaseException:
+            with lock:
+                pending.clear()  # hand nothing more out
+            raise
+        while True:  # the workers' calls; a callback may still be submitting the last one it took
             with lock:
                 unfinished = [f for _, f in handed_out if not f.done()]
-            if not unfinished:
+                complete = not unfinished and len(handed_out) == reserved[0]
+            if complete:
                 break
-            wait(unfinished)
+            if unfinished:
+                wait(unfinished)
+            else:
+                time.sleep(0.0002)
         for index, future in handed_out:
             results[index] = future.result()
         return results
