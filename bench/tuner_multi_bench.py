@@ -14,8 +14,9 @@ fills it first).
    get a fresh, empty ``--epoch-cache`` folder, so every bag is decoded; warm runs reuse a
    filled one. Medians of ``--runs`` runs (default 3), interleaved.
 2. **4 bags, --jobs 2 vs --jobs 1** (warm epoch cache): medians of ``--runs`` runs, interleaved,
-   and their ratio. Target (issue #13): jobs 2 <= 0.65 x jobs 1 on a 2-core machine, with the
-   same YAML (checked here too).
+   and their ratio; also the ratio over the pairs during which ``ps`` saw no other busy process
+   (other sessions on a shared machine take a core and skew it). Target (issue #13): jobs 2 <=
+   0.65 x jobs 1 on a 2-core machine, with the same YAML (checked here too).
 
 Run: ``python bench/tuner_multi_bench.py [--runs N] [--leave-one-out]``; ``bench/run.py`` calls :func:`main`.
 """
@@ -48,14 +49,27 @@ def ensure_bags(cache: Path, count: int = 10) -> list[Path]:
     return bags
 
 
-def run_tuner(bags: list[Path], out: Path, *extra: str) -> tuple[float, str]:
-    """(wall s, stdout) of one tuner subprocess; raises if it fails."""
+def others_busy() -> int:
+    """Other processes that used more than 15 % of a CPU over their lifetime (``ps``): a noisy machine."""
+    result = subprocess.run(["ps", "-eo", "pid=,pcpu="], capture_output=True, text=True)
+    rows = [line.split() for line in result.stdout.splitlines() if line.strip()]
+    return sum(1 for pid, cpu in rows if int(pid) != os.getpid() and float(cpu) > 15.0)
+
+
+def run_tuner(bags: list[Path], out: Path, *extra: str, quiet: list[bool] | None = None) -> tuple[float, str]:
+    """(wall s, stdout) of one tuner subprocess; raises if it fails.
+
+    Appends to ``quiet`` whether no other busy process was seen before and after the run.
+    """
+    busy_before = others_busy() if quiet is not None else 0
     start = time.perf_counter()
     result = subprocess.run([*command("tuner"), *map(str, bags), "-o", str(out), "--seed", "7", *extra],
                             capture_output=True, text=True, env=child_env(), cwd=ROOT)
     wall = time.perf_counter() - start
     if result.returncode != 0:
         raise RuntimeError(f"tuner failed ({result.returncode}): {result.stderr[-2000:]}")
+    if quiet is not None:
+        quiet.append(busy_before == 0 and others_busy() == 0)
     return wall, result.stdout
 
 
@@ -85,11 +99,16 @@ def main(argv: list[str] | None = None) -> int:
             warm.append(run_tuner(bags, work / f"warm{i}.yaml", *fixed, "--epoch-cache", str(warm_cache))[0])
         four = bags[:4]
         yamls = set()
+        quiet_pairs = []
         for i in range(args.runs):
+            quiet: list[bool] = []
             for jobs, walls in ((1, jobs1), (2, jobs2)):
                 out = work / f"jobs{jobs}_{i}.yaml"
-                walls.append(run_tuner(four, out, *fixed, "--epoch-cache", str(warm_cache), "--jobs", str(jobs))[0])
+                walls.append(run_tuner(four, out, *fixed, "--epoch-cache", str(warm_cache), "--jobs", str(jobs),
+                                       quiet=quiet)[0])
                 yamls.add(out.read_bytes())
+            if all(quiet):
+                quiet_pairs.append(jobs2[-1] / jobs1[-1])
         loo = None
         if args.leave_one_out:
             loo = run_tuner(bags, work / "loo.yaml", "--epoch-cache", str(warm_cache))[0]
@@ -112,6 +131,12 @@ def main(argv: list[str] | None = None) -> int:
     print(f"--jobs 2 / --jobs 1 = {ratio:.3f} of the medians (target <= {TARGET_JOBS_RATIO}: "
           f"{'met' if ratio <= TARGET_JOBS_RATIO else 'MISSED'}), {min(jobs2) / min(jobs1):.3f} of the minima "
           f"(less sensitive to other load); YAML {'identical' if len(yamls) == 1 else 'DIFFERS'} across jobs and runs")
+    if quiet_pairs:
+        print(f"pairs with no other busy process before or after either run: {len(quiet_pairs)}/{args.runs}, "
+              f"ratio median {statistics.median(quiet_pairs):.3f} (min {min(quiet_pairs):.3f}, "
+              f"max {max(quiet_pairs):.3f})")
+    else:
+        print(f"no pair of the {args.runs} ran on a quiet machine: the --jobs ratio above is not meaningful")
     print(f"decoding 10 bags (cold - warm): {statistics.median(cold) - statistics.median(warm):.2f} s of the medians, "
           f"{min(cold) - min(warm):.2f} s of the minima")
     return 1 if args.strict and not ok else 0
