@@ -75,7 +75,10 @@ def minimize_cmaes(
     on_iteration: Callable[[IterationRecord], None] | None = None,
 ) -> OptimizeResult:
     """Minimise the batch ``objective`` over ``box`` with CMA-ES (same arguments as :func:`.pso.minimize`)."""
-    import cma  # only this optimiser needs it
+    try:
+        import cma  # only this optimiser needs it
+    except ImportError:
+        raise ValueError("CMA-ES needs the cma package, which is not installed (pip install cma)") from None
 
     if max_evaluations is not None and max_evaluations < 1:
         raise ValueError(f"max_evaluations must be >= 1, got {max_evaluations!r}")

@@ -295,8 +295,11 @@ class DaskBackend:
     """A ``dask.distributed`` cluster at ``address`` (``--dask tcp://host:8786``)."""
 
     def __init__(self, address: str, *, timeout: float | None = None) -> None:
-        from distributed import Client
-
+        try:
+            from distributed import Client
+        except ImportError:
+            raise ValueError("--dask needs dask.distributed, which is not installed "
+                             "(pip install 'dask[distributed]')") from None
         timeout = DASK_CONNECT_TIMEOUT if timeout is None else timeout
         try:
             self._client = Client(address, timeout=timeout, set_as_default=False)
