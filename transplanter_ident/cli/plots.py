@@ -1,4 +1,4 @@
-"""PNG plots of a tuning run, after the paper's Figs. 4-7 (matplotlib, Agg backend).
+"""PNG plots of a tuning run, after the paper's Figs. 4-7 (matplotlib, Agg backend), and the report folder.
 
 * Fig. 4 :func:`plot_convergence`: the global-best objective (eq. 21 or NLL) against iteration;
 * Fig. 5 :func:`plot_stiffness`: identified Cf and Cr against time with a +-2 sigma band (the
@@ -8,6 +8,8 @@
 
 matplotlib is an optional dependency: :func:`require_pyplot` raises a one-line error naming
 the package if it is missing. Files are written atomically (temp file, then rename).
+:func:`write_report` writes one bag's figures and tables, :func:`write_multi_report` those of
+a multi-bag run (Fig. 4 once, Figs. 5-7 per bag, Table 2 per bag and the leave-one-out table).
 """
 
 from __future__ import annotations
@@ -26,6 +28,9 @@ from transplanter_ident.files import atomic_output_file, atomic_write_text
 from transplanter_ident.tuning.pso import OptimizeResult
 
 if TYPE_CHECKING:  # pragma: no cover
+    from collections.abc import Sequence
+
+    from transplanter_ident.tuning.multi import LeaveOneOut
     from transplanter_ident.tuning.tune import Comparison, TuningOutcome
 
 OBJECTIVE_LABELS = {"mae": "mean |innovation| (eq. 21)", "nll": "innovation NLL"}
@@ -144,30 +149,62 @@ def _limit_to_measurement(ax: Any, measured: np.ndarray, model: np.ndarray) -> N
                 f"{np.nanmax(np.abs(model)):.3g})", transform=ax.transAxes, fontsize="small", color="tab:red")
 
 
-def write_report(directory: str | Path, outcome: TuningOutcome, epochs: EpochArrays, comparison: Comparison, *,
-                 bag: str = "", truth: StiffnessTruth | None = None,
-                 extra_runs: Mapping[str, OptimizeResult] | None = None) -> list[Path]:
-    """Figs. 4-7 and the metrics (report.txt) of one tuning run into ``directory`` (created)."""
+def _report_dir(directory: str | Path) -> Path:
     require_pyplot()
     out = Path(directory)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise CliError(f"{out}: cannot create the report directory: {exc.strerror or exc}") from None
-    algorithm = outcome.result.algorithm.upper()
-    runs = {algorithm: outcome.result, **(extra_runs or {})}
-    written = [
-        plot_convergence(out / "fig4_objective.png", runs, outcome.problem.objective),
-        plot_stiffness(out / "fig5_stiffness_tuned.png", epochs, comparison.tuned_outputs, truth,
+    return out
+
+
+def _bag_figures(out: Path, suffix: str, algorithm: str, epochs: EpochArrays, comparison: Comparison,
+                 truth: StiffnessTruth | None) -> list[Path]:
+    """Figs. 5-7 of one bag (tuned and starting Q/R)."""
+    return [
+        plot_stiffness(out / f"fig5_stiffness_tuned{suffix}.png", epochs, comparison.tuned_outputs, truth,
                        f"Cornering stiffness, {algorithm}-EKF tuned Q/R (Fig. 5)"),
-        plot_stiffness(out / "fig5_stiffness_start.png", epochs, comparison.start_outputs, truth,
+        plot_stiffness(out / f"fig5_stiffness_start{suffix}.png", epochs, comparison.start_outputs, truth,
                        "Cornering stiffness, starting Q/R"),
-        plot_model_output(out / "fig6_model_output_tuned.png", epochs, comparison.tuned_outputs,
+        plot_model_output(out / f"fig6_model_output_tuned{suffix}.png", epochs, comparison.tuned_outputs,
                           f"Model output vs measurement, {algorithm}-EKF tuned Q/R (Fig. 6)"),
-        plot_model_output(out / "fig7_model_output_start.png", epochs, comparison.start_outputs,
+        plot_model_output(out / f"fig7_model_output_start{suffix}.png", epochs, comparison.start_outputs,
                           "Model output vs measurement, EKF with the starting Q/R (Fig. 7)"),
     ]
+
+
+def write_report(directory: str | Path, outcome: TuningOutcome, epochs: EpochArrays, comparison: Comparison, *,
+                 bag: str = "", truth: StiffnessTruth | None = None,
+                 extra_runs: Mapping[str, OptimizeResult] | None = None) -> list[Path]:
+    """Figs. 4-7 and the metrics (report.txt) of one tuning run into ``directory`` (created)."""
+    out = _report_dir(directory)
+    algorithm = outcome.result.algorithm.upper()
+    runs = {algorithm: outcome.result, **(extra_runs or {})}
+    written = [plot_convergence(out / "fig4_objective.png", runs, outcome.problem.objective),
+               *_bag_figures(out, "", algorithm, epochs, comparison, truth)]
     text = f"bag: {bag}\n{comparison.format('Table 2')}\n"
     atomic_write_text(out / "report.txt", text)
+    written.append(out / "report.txt")
+    return written
+
+
+def write_multi_report(directory: str | Path, outcome: TuningOutcome, epochs: Sequence[EpochArrays],
+                       comparisons: Sequence[Comparison], *, bags: Sequence[str],
+                       truths: Sequence[StiffnessTruth | None], holdout: LeaveOneOut | None = None) -> list[Path]:
+    """A multi-bag run: Fig. 4, Figs. 5-7 per bag (``_<n>_<bag name>``), report.txt with every table."""
+    out = _report_dir(directory)
+    algorithm = outcome.result.algorithm.upper()
+    written = [plot_convergence(out / "fig4_objective.png", {algorithm: outcome.result}, outcome.problem.objective)]
+    sections = []
+    for n, (bag, bag_epochs, comparison, truth) in enumerate(zip(bags, epochs, comparisons, truths, strict=True), 1):
+        name = "".join(c if c.isalnum() or c in "-_" else "_" for c in Path(bag).name) or "bag"
+        written += _bag_figures(out, f"_{n}_{name}", algorithm, bag_epochs, comparison, truth)
+        sections.append(f"bag {n}: {bag}\n{comparison.format('Table 2')}")
+    if holdout is not None:
+        sections.append(holdout.format())
+        atomic_write_text(out / "leave_one_out.txt", holdout.format() + "\n")
+        written.append(out / "leave_one_out.txt")
+    atomic_write_text(out / "report.txt", "\n\n".join(sections) + "\n")
     written.append(out / "report.txt")
     return written

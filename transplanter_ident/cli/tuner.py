@@ -1,17 +1,24 @@
-"""The `tuner` command: IPSO/PSO tuning of the EKF's Q and R on a bag (paper eqs. 15-22, Table 2).
+"""The `tuner` command: IPSO/PSO/CMA-ES tuning of the EKF's Q and R on bags (paper eqs. 15-22, Table 2).
 
-``tuner BAG -o OUT.yaml [--params-file P.yaml ...] [--algorithm ipso|pso] [--objective mae|nll]
-[--particles N] [--iterations N] [--seed N] [--report DIR] [--debug]``
+``tuner BAG [BAG ...] -o OUT.yaml [--params-file P.yaml ...] [--algorithm ipso|pso|cmaes]
+[--objective mae|nll] [--particles N] [--iterations N] [--seed N] [--report DIR] [--jobs N]
+[--dask ADDRESS] [--epoch-cache DIR | --no-epoch-cache] [--no-leave-one-out] [--debug]``
 
-1. reads the bag's epochs (``bag_io.read_epochs``) with the layered parameters;
-2. searches the log10 diagonal of Q and R (eq. 22, :mod:`tuning`) with IPSO (eqs. 17-20) or
-   standard PSO (eqs. 15-16), minimising eq. (21) (``mae``) or the innovation NLL (``nll``),
-   the starting Q/R being one of the initial particles; one progress line per iteration;
+1. reads each bag's epochs with the layered parameters, decoding a bag only if the epoch
+   cache (:mod:`transplanter_ident.bags.cache`) does not hold it yet;
+2. searches the log10 diagonal of Q and R (eq. 22, :mod:`tuning`) with IPSO (eqs. 17-20),
+   standard PSO (eqs. 15-16) or CMA-ES, minimising eq. (21) (``mae``) or the innovation NLL
+   (``nll``), averaged over the bags with their epoch counts as weights; the starting Q/R is
+   one of the initial candidates; one progress line per iteration. The candidates run on
+   ``--jobs`` processes or a Dask cluster (:mod:`transplanter_ident.tuning.parallel`): the
+   result for a seed is the same either way;
 3. writes OUT.yaml atomically: ``ekf.process_noise``, ``ekf.measurement_noise`` (and the heading
    Q they were tuned with) plus the ``ekf`` options they are valid for, under a comment header;
    it layers over the defaults (``--params-file config/estimator.yaml --params-file OUT.yaml``);
-4. prints the paper's Table 2 for the starting and the tuned Q/R on the same bag, and the
-   tuned/start ratios of the mean errors; ``--report DIR`` adds the plots of Figs. 4-7.
+4. prints the paper's Table 2 for the starting and the tuned Q/R on each bag, and the
+   tuned/start ratios of the mean errors; with several bags, a leave-one-bag-out table
+   (:func:`transplanter_ident.tuning.multi.leave_one_out`); ``--report DIR`` adds the plots
+   of Figs. 4-7 and the tables.
 
 Every failure (unreadable bag, too few epochs, unwritable output, bad flag) is one line on
 stderr and a non-zero exit; a half-written YAML is never left behind.
@@ -23,6 +30,7 @@ import argparse
 import os
 import sys
 from collections.abc import Callable, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -30,9 +38,19 @@ from transplanter_ident.cli.util import CliError, cli_main
 from transplanter_ident.config.params_file import EstimatorParams, load_params
 from transplanter_ident.config.params_writer import write_params_yaml
 from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.tuning.multi import MultiBagProblem, leave_one_out
+from transplanter_ident.tuning.parallel import (
+    Backend,
+    ProcessBackend,
+    SerialBackend,
+    default_jobs,
+    open_backend,
+    warm_kernels,
+)
 from transplanter_ident.tuning.problem import OBJECTIVES
-from transplanter_ident.tuning.pso import ALGORITHMS, IterationRecord
-from transplanter_ident.tuning.tune import compare, header_comment, tune, tuned_parameters
+from transplanter_ident.tuning.pso import IterationRecord
+from transplanter_ident.tuning.tune import ALGORITHMS, compare, header_comment, tune_problem, tuned_parameters
+from transplanter_ident.tuning.tune import tune as tune  # one bag, in-process (tests, benchmarks)
 
 MIN_EPOCHS = 50
 
@@ -65,12 +83,15 @@ _seed = _int_at_least(0)
 
 def build_parser() -> argparse.ArgumentParser:
     """Command line pinned in DESIGN.md section 3."""
-    parser = _Parser(prog="tuner", description="Tune the EKF's Q and R on a recorded bag (IPSO or PSO).")
-    parser.add_argument("bag", metavar="BAG", help="rosbag2 directory (with metadata.yaml) or a .mcap file")
+    parser = _Parser(prog="tuner", description="Tune the EKF's Q and R on recorded bags (IPSO, PSO or CMA-ES); "
+                                                "several bags get one Q/R for all of them.")
+    parser.add_argument("bags", metavar="BAG", nargs="+",
+                        help="rosbag2 directory (with metadata.yaml) or a .mcap file; several: one Q/R for all")
     parser.add_argument("-o", "--output", metavar="OUT.yaml", required=True, help="params YAML to write")
     parser.add_argument("--params-file", metavar="P.yaml", action="append", default=[],
                         help="base parameters (repeatable, layered; default: built-in = config/estimator.yaml)")
-    parser.add_argument("--algorithm", choices=ALGORITHMS, default="ipso", help="optimiser (default ipso)")
+    parser.add_argument("--algorithm", choices=ALGORITHMS, default="ipso",
+                        help="optimiser: ipso (the paper's, default), pso, cmaes (CMA-ES, the cma package)")
     parser.add_argument("--objective", choices=tuple(OBJECTIVES), default="nll",
                         help="nll: innovation negative log-likelihood (default; more robust, see README); "
                              "mae: the paper's eq. 21 mean |innovation|")
@@ -78,6 +99,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--iterations", metavar="N", type=_count, default=40, help="iterations k_max (default 40)")
     parser.add_argument("--seed", metavar="N", type=_seed, help="random seed (default: drawn, and recorded in OUT)")
     parser.add_argument("--report", metavar="DIR", help="write plots (Figs. 4-7) and the metrics to DIR")
+    parser.add_argument("--jobs", metavar="N", type=_count, default=None,
+                        help=f"worker processes for decoding bags and evaluating candidates (default: the number "
+                             f"of cores, {default_jobs()} here); the result is the same for any N")
+    parser.add_argument("--dask", metavar="ADDRESS",
+                        help="evaluate candidates on a dask.distributed cluster (scheduler address, e.g. "
+                             "tcp://10.0.0.5:8786); bags are decoded here and sent to the workers")
+    parser.add_argument("--epoch-cache", metavar="DIR", default=None,
+                        help="where decoded epochs are kept (default $XDG_CACHE_HOME/transplanter_ident/epochs)")
+    parser.add_argument("--no-epoch-cache", action="store_true", help="decode every bag, keep nothing")
+    parser.add_argument("--no-leave-one-out", action="store_true",
+                        help="with several bags, skip the leave-one-bag-out check (2 tuning runs per bag)")
     parser.add_argument("--debug", action="store_true", help="print tracebacks on errors")
     return parser
 
@@ -129,6 +161,40 @@ def progress_printer(total: int, stream: Any = None) -> Callable[[IterationRecor
 # --------------------------------------------------------------------------- command
 
 
+def cache_dir(args: argparse.Namespace) -> Path | None:
+    """The epoch cache folder of the command line (None: no cache)."""
+    if args.no_epoch_cache:
+        return None
+    from transplanter_ident.bags.cache import default_cache_dir
+
+    return Path(args.epoch_cache) if args.epoch_cache else default_cache_dir()
+
+
+def load_bags(bags: Sequence[str], params: EstimatorParams, backend: Backend, cache: Path | None,
+              stream: Any = None) -> list[Any]:
+    """Each bag's ``bags.cache.DecodedBag`` (decoded in parallel on ``backend``; one line each on stderr)."""
+    from transplanter_ident.bags.cache import (  # rosbags only where bags are read
+        cached_bag_epochs,
+        load_bag_epochs,
+    )
+
+    out = stream if stream is not None else sys.stderr
+    decoded = [cached_bag_epochs(bag, params, cache) if cache is not None else None for bag in bags]
+    missing = [i for i, item in enumerate(decoded) if item is None]
+    for i, item in zip(missing, backend.map(load_bag_epochs, [(bags[i], params, cache) for i in missing]),
+                       strict=True):
+        decoded[i] = item
+    for item in decoded:
+        count = len(item.columns)
+        if count < MIN_EPOCHS:
+            raise CliError(f"{item.bag}: only {count} epochs, too short to tune (need at least {MIN_EPOCHS})")
+        where = "from the epoch cache" if item.source == "cache" else (
+            "decoded" + (f", cached in {cache}" if cache is not None and not item.note else ""))
+        print(f"tuner: {item.bag}: {count} epochs ({where}){f'; note: {item.note}' if item.note else ''}",
+              file=out, flush=True)
+    return decoded
+
+
 def _run(args: argparse.Namespace) -> int:
     check_output_path(args.output)
     if args.report:
@@ -136,24 +202,58 @@ def _run(args: argparse.Namespace) -> int:
 
         require_pyplot()  # fail before the search, not after it
     params = load_parameters(args.params_file)
-    epochs, truth = load_bag(args.bag, params, truth=bool(args.report))
+    jobs = args.jobs if args.jobs is not None else default_jobs()
+    local = SerialBackend() if jobs <= 1 else ProcessBackend(jobs, warm_up=partial(warm_kernels, params.config))
+    remote = open_backend(dask_address=args.dask) if args.dask else local
+    if isinstance(remote, ProcessBackend):
+        remote.start()  # the workers load the kernels while the bags are read here
+    try:
+        return _tune_bags(args, params, local, remote)
+    finally:
+        for backend in {id(local): local, id(remote): remote}.values():
+            backend.close()
+
+
+def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend, remote: Backend) -> int:
+    decoded = load_bags(args.bags, params, local, cache_dir(args))
+    epochs = [item.epochs for item in decoded]
+    truths = [item.truth for item in decoded]
     config = params.config
-    print(f"tuner: {len(epochs)} epochs from {args.bag}; {args.algorithm} on {args.objective}, "
+    problem = MultiBagProblem.from_epochs(config, epochs, args.objective, remote)
+    where = f"Dask cluster {args.dask}" if args.dask else f"{local.slots} job{'s' if local.slots > 1 else ''}"
+    source = args.bags[0] if len(args.bags) == 1 else f"{len(args.bags)} bags"
+    print(f"tuner: {sum(map(len, epochs))} epochs from {source}; {args.algorithm} on {args.objective}, "
           f"F = {args.particles}, k_max = {args.iterations}, model {config.options.discretization}/"
-          f"{config.options.stiffness_state}/{config.options.measurement}", file=sys.stderr)
-    outcome = tune(config, epochs, algorithm=args.algorithm, objective=args.objective, particles=args.particles,
-                   iterations=args.iterations, seed=args.seed, on_iteration=progress_printer(args.iterations))
+          f"{config.options.stiffness_state}/{config.options.measurement}; {where}", file=sys.stderr)
+    outcome = tune_problem(problem, algorithm=args.algorithm, particles=args.particles, iterations=args.iterations,
+                           seed=args.seed, on_iteration=progress_printer(args.iterations))
     write_params_yaml(args.output, tuned_parameters(outcome.tuned_config),
-                      header_comment(outcome, args.bag, len(epochs)))
+                      header_comment(outcome, args.bags, [len(e) for e in epochs]))
     result = outcome.result
     print(f"{args.algorithm}: {args.objective} {outcome.start_fitness:.6g} -> {result.fitness:.6g} "
           f"({result.evaluations} evaluations, {outcome.seconds:.1f} s, seed {outcome.seed}); wrote {args.output}")
-    comparison = compare(outcome, epochs)
-    print(comparison.format(f"Table 2 on {args.bag}"))
-    if args.report:
-        from transplanter_ident.cli.plots import write_report
+    comparisons = []
+    for bag, bag_epochs in zip(args.bags, epochs, strict=True):
+        comparisons.append(compare(outcome, bag_epochs))
+        print(comparisons[-1].format(f"Table 2 on {bag}"))
+    holdout = None
+    if len(args.bags) > 1 and not args.no_leave_one_out:
+        def tune_fold(fold: MultiBagProblem, seed: int) -> Any:
+            return tune_problem(fold, algorithm=args.algorithm, particles=args.particles,
+                                iterations=args.iterations, seed=seed).tuned_config
 
-        written = write_report(args.report, outcome, epochs, comparison, bag=args.bag, truth=truth)
+        holdout = leave_one_out(problem, epochs, truths, args.bags, tune_fold, outcome.seed,
+                                on_fold=lambda line: print(f"tuner: {line}", file=sys.stderr, flush=True))
+        print(holdout.format())
+    if args.report:
+        from transplanter_ident.cli.plots import write_multi_report, write_report
+
+        if len(args.bags) == 1:
+            written = write_report(args.report, outcome, epochs[0], comparisons[0], bag=args.bags[0],
+                                   truth=truths[0])
+        else:
+            written = write_multi_report(args.report, outcome, epochs, comparisons, bags=args.bags, truths=truths,
+                                         holdout=holdout)
         print(f"report: {len(written)} files in {args.report}")
     return 0
 

@@ -1,8 +1,10 @@
 """Tuning Q and R on recorded epochs (paper eqs. 15-22) and comparing the result (Table 2).
 
-:func:`tune` searches the log10 diagonal of Q and R (:mod:`.problem`) with IPSO or PSO
-(:mod:`.pso`), starting from the configured Q/R as one of the particles; :func:`compare`
-runs the starting and the tuned filter over the same epochs for the paper's Table 2.
+:func:`tune` searches the log10 diagonal of Q and R (:mod:`.problem`) of one bag, and
+:func:`tune_problem` that of any batch problem (several bags: :class:`.multi.MultiBagProblem`),
+with IPSO or PSO (:mod:`.pso`) or CMA-ES (:mod:`.cmaes`), starting from the configured Q/R
+as one of the candidates (:func:`optimize` picks the algorithm); :func:`compare` runs the
+starting and the tuned filter over the same epochs for the paper's Table 2.
 :func:`tuned_parameters` and :func:`header_comment` are what the tuner's YAML holds.
 """
 
@@ -10,28 +12,77 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
-from transplanter_ident.config.parameters import EstimatorConfig
+from transplanter_ident.config.parameters import EstimatorConfig, NoiseParams
 from transplanter_ident.ekf.joint_ekf import run_sequence
 from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.evaluation.metrics import Table2Row, format_table2, table2_row
+from transplanter_ident.tuning.box import Box
+from transplanter_ident.tuning.cmaes import CmaesSettings, minimize_cmaes
 from transplanter_ident.tuning.problem import NAMES, TuningProblem
-from transplanter_ident.tuning.pso import IterationRecord, OptimizeResult, minimize, settings_for
+from transplanter_ident.tuning.pso import (
+    BatchObjective,
+    IterationRecord,
+    OptimizeResult,
+    minimize,
+    settings_for,
+)
 
 START_LABEL = "EKF (start Q/R)"
+#: the optimisers: the paper's IPSO (eqs. 17-20), standard PSO (eqs. 15-16), CMA-ES (``cma``)
+ALGORITHMS = ("ipso", "pso", "cmaes")
+
+
+class Problem(Protocol):
+    """What tuning needs of a problem (:class:`.problem.TuningProblem`, :class:`.multi.MultiBagProblem`)."""
+
+    config: EstimatorConfig
+    objective: str
+
+    @property
+    def box(self) -> Box:
+        """The search box."""
+
+    @property
+    def start(self) -> np.ndarray:
+        """The configuration's Q/R as a position in the box."""
+
+    def __call__(self, positions: np.ndarray) -> np.ndarray:
+        """Objective of each row of ``positions``."""
+
+    def evaluate_noise(self, noise: NoiseParams) -> float:
+        """Objective of one NoiseParams."""
+
+    def tuned_config(self, position: np.ndarray) -> EstimatorConfig:
+        """The configuration with the Q/R of ``position``."""
+
+
+def optimize(algorithm: str, objective: BatchObjective, box: Box, *, particles: int = 20, iterations: int = 40,
+             seed: int | np.random.Generator | None = None, initial: np.ndarray | None = None,
+             max_evaluations: int | None = None,
+             on_iteration: Callable[[IterationRecord], None] | None = None) -> OptimizeResult:
+    """Minimise with ``ipso``, ``pso`` or ``cmaes``: F = ``particles`` per iteration, k_max = ``iterations``."""
+    if algorithm == "cmaes":
+        return minimize_cmaes(objective, box, CmaesSettings(particles=particles, iterations=iterations), seed,
+                              initial=initial, max_evaluations=max_evaluations, on_iteration=on_iteration)
+    if algorithm not in ALGORITHMS:
+        raise ValueError(f"algorithm must be one of {', '.join(ALGORITHMS)}, got {algorithm!r}")
+    settings = settings_for(algorithm, particles=particles, iterations=iterations)
+    return minimize(objective, box, settings, seed, initial=initial, max_evaluations=max_evaluations,
+                    on_iteration=on_iteration)
 
 
 @dataclass(frozen=True)
 class TuningOutcome:
     """What one tuning run produced."""
 
-    problem: TuningProblem
+    problem: Problem
     result: OptimizeResult
     start_fitness: float
     seed: int
@@ -79,12 +130,24 @@ def tune(config: EstimatorConfig, epochs: EpochArrays, *, algorithm: str = "ipso
     So the result is never worse than the starting Q/R when that lies inside the search box.
     ``seed`` None draws one (recorded in the outcome, so the run can be repeated).
     """
-    seed = int(np.random.SeedSequence().entropy % 2**32) if seed is None else seed
     problem = TuningProblem.from_epochs(config, epochs, objective)
-    settings = settings_for(algorithm, particles=particles, iterations=iterations)
+    return tune_problem(problem, algorithm=algorithm, particles=particles, iterations=iterations, seed=seed,
+                        max_evaluations=max_evaluations, on_iteration=on_iteration)
+
+
+def draw_seed() -> int:
+    """A fresh random seed (recorded with the result, so the run can be repeated)."""
+    return int(np.random.SeedSequence().entropy % 2**32)
+
+
+def tune_problem(problem: Problem, *, algorithm: str = "ipso", particles: int = 20, iterations: int = 40,
+                 seed: int | None = None, max_evaluations: int | None = None,
+                 on_iteration: Callable[[IterationRecord], None] | None = None) -> TuningOutcome:
+    """Search Q/R on any problem (one bag or several); its starting Q/R is one of the initial candidates."""
+    seed = draw_seed() if seed is None else seed
     begin = time.perf_counter()
-    result = minimize(problem, problem.box, settings, seed, initial=problem.start[None, :],
-                      max_evaluations=max_evaluations, on_iteration=on_iteration)
+    result = optimize(algorithm, problem, problem.box, particles=particles, iterations=iterations, seed=seed,
+                      initial=problem.start[None, :], max_evaluations=max_evaluations, on_iteration=on_iteration)
     seconds = time.perf_counter() - begin
     start_fitness = float(problem(problem.start[None, :])[0])  # as the swarm saw its starting particle
     return TuningOutcome(problem, result, start_fitness, seed, seconds)
@@ -119,13 +182,18 @@ def tuned_parameters(config: EstimatorConfig) -> dict[str, Any]:
     return flat
 
 
-def header_comment(outcome: TuningOutcome, bag: str, epochs: int) -> str:
-    """The YAML's comment header: provenance of the numbers."""
+def header_comment(outcome: TuningOutcome, bag: str | Sequence[str], epochs: int | Sequence[int]) -> str:
+    """The YAML's comment header: provenance of the numbers (one ``bag:`` line per bag)."""
     result = outcome.result
     names = ", ".join(f"{n}={10.0**v:.3g}" for n, v in zip(NAMES, result.position, strict=True))
+    bags = [bag] if isinstance(bag, (str, Path)) else list(bag)
+    counts = [epochs] if isinstance(epochs, int) else list(epochs)
+    lines = [f"bag: {Path(b).resolve()} ({n} epochs)" for b, n in zip(bags, counts, strict=True)]
+    if len(bags) > 1:
+        lines.insert(0, f"{len(bags)} bags, {sum(counts)} epochs; objective: epoch-weighted mean over the bags")
     return "\n".join([
         "Q and R tuned by transplanter_ident tuner (paper eqs. 15-22).",
-        f"bag: {Path(bag).resolve()} ({epochs} epochs)",
+        *lines,
         f"algorithm: {result.algorithm}, objective: {outcome.problem.objective}, seed: {outcome.seed}",
         f"fitness: {result.fitness:.6g} (start {outcome.start_fitness:.6g}), evaluations: {result.evaluations}, "
         f"iterations: {result.iterations}",

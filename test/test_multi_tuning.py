@@ -1,0 +1,255 @@
+"""Tests of multi-bag tuning (eqs. 21-22 over several bags), the leave-one-bag-out table, --jobs and --dask."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import transplanter_ident.cli.tuner as tuner
+from transplanter_ident.config.params_file import EstimatorParams, read_params_file
+from transplanter_ident.tuning.multi import MultiBagProblem, fold_seed
+from transplanter_ident.tuning.parallel import ProcessBackend, SerialBackend, plan_chunks
+from transplanter_ident.tuning.problem import TuningProblem
+
+#: short simulated drives of different kinds (30 s, 150 epochs each at 5 Hz)
+SCENARIOS = (("sine", 11), ("step20-ccw", 12), ("step30-cw", 13))
+
+
+@pytest.fixture(scope="module")
+def sim_bags(tmp_path_factory) -> list[Path]:  # noqa: ANN001
+    """Three 30 s simulated bags with ground truth."""
+    from transplanter_ident.bags import write_sim_bag
+    from transplanter_ident.sim.scenarios import build_config
+    from transplanter_ident.sim.simulator import simulate
+
+    root = tmp_path_factory.mktemp("multi_bags")
+    paths = []
+    for name, seed in SCENARIOS:
+        path = root / name
+        write_sim_bag(simulate(build_config(name, duration=30.0, seed=seed)), path)
+        paths.append(path)
+    return paths
+
+
+@pytest.fixture(scope="module")
+def sim_epochs(sim_bags) -> list:  # noqa: ANN001
+    params = EstimatorParams()
+    return [tuner.load_bag(str(bag), params)[0] for bag in sim_bags]
+
+
+def _positions(problem: MultiBagProblem | TuningProblem, count: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.vstack([problem.start, problem.box.uniform(rng, count - 1)])
+
+
+# --------------------------------------------------------------------------- the objective
+
+
+def test_multi_bag_objective_is_the_epoch_weighted_mean(sim_epochs) -> None:  # noqa: ANN001
+    config = EstimatorParams().config
+    problem = MultiBagProblem.from_epochs(config, sim_epochs, "nll")
+    singles = [TuningProblem.from_epochs(config, e, "nll") for e in sim_epochs]
+    x = _positions(problem, 5)
+    weights = np.array([len(e) for e in sim_epochs], dtype=float)
+    expected = sum(w * p(x) for w, p in zip(weights, singles, strict=True)) / weights.sum()
+    np.testing.assert_allclose(problem(x), expected, rtol=1e-12)
+    noise = config.noise
+    expected_start = sum(w * p.evaluate_noise(noise) for w, p in zip(weights, singles, strict=True)) / weights.sum()
+    assert problem.evaluate_noise(noise) == pytest.approx(expected_start, rel=1e-12)
+    # one bag: exactly that bag's objective
+    np.testing.assert_array_equal(problem.subset([1])(x), singles[1](x))
+    assert problem.subset([2]).epochs == (len(sim_epochs[2]),)
+    assert problem.box == singles[0].box and np.array_equal(problem.start, singles[0].start)
+
+
+def test_bags_must_share_the_configuration(sim_epochs) -> None:  # noqa: ANN001
+    config = EstimatorParams().config
+    mae = TuningProblem.from_epochs(config, sim_epochs[0], "mae")
+    nll = TuningProblem.from_epochs(config, sim_epochs[1], "nll")
+    with pytest.raises(ValueError, match="share"):
+        MultiBagProblem((mae, nll))
+    with pytest.raises(ValueError, match="at least one"):
+        MultiBagProblem(())
+
+
+@pytest.mark.parametrize(("sizes", "candidates", "slots"), [((100, 300, 50), 20, 2), ((10,), 1, 4), ((5, 5), 7, 1),
+                                                            ((1000,), 3, 8), ((7, 9, 11, 13), 40, 3)])
+def test_chunks_cover_every_candidate_of_every_bag_once(sizes, candidates, slots) -> None:  # noqa: ANN001
+    tasks = plan_chunks(sizes, candidates, slots)
+    for bag in range(len(sizes)):
+        covered = sorted(i for b, first, stop in tasks if b == bag for i in range(first, stop))
+        assert covered == list(range(candidates))
+    if slots == 1:
+        assert len(tasks) == len(sizes)
+    costs = [(stop - first) * sizes[bag] for bag, first, stop in tasks]
+    assert costs == sorted(costs, reverse=True)  # largest first
+
+
+def test_process_pool_values_equal_serial_values_bit_for_bit(sim_epochs) -> None:  # noqa: ANN001
+    config = EstimatorParams().config
+    serial = MultiBagProblem.from_epochs(config, sim_epochs, "mae")
+    x = _positions(serial, 9, seed=4)
+    pool = ProcessBackend(2)
+    try:
+        pool.wait_ready()  # so that the worker computes some of the chunks
+        assert pool.ready()
+        parallel = MultiBagProblem.from_epochs(config, sim_epochs, "mae", pool)
+        np.testing.assert_array_equal(parallel.per_bag(x), serial.per_bag(x))
+        np.testing.assert_array_equal(parallel(x), serial(x))
+        assert pool.map(math.hypot, [(3.0, 4.0), (5.0, 12.0)]) == [5.0, 13.0]
+    finally:
+        pool.close()
+
+
+@pytest.mark.parametrize("algorithm", ["ipso", "cmaes"])
+def test_tuning_on_a_ready_pool_equals_serial_tuning(sim_epochs, algorithm: str) -> None:  # noqa: ANN001
+    from transplanter_ident.tuning.tune import tune_problem
+
+    config = EstimatorParams().config
+    serial = tune_problem(MultiBagProblem.from_epochs(config, sim_epochs, "nll"), algorithm=algorithm,
+                          particles=6, iterations=4, seed=8)
+    pool = ProcessBackend(2)
+    try:
+        pool.wait_ready()
+        parallel = tune_problem(MultiBagProblem.from_epochs(config, sim_epochs, "nll", pool), algorithm=algorithm,
+                                particles=6, iterations=4, seed=8)
+    finally:
+        pool.close()
+    assert parallel.result.fitness == serial.result.fitness
+    np.testing.assert_array_equal(parallel.result.position, serial.result.position)
+    assert [h.best_fitness for h in parallel.result.history] == [h.best_fitness for h in serial.result.history]
+
+
+def test_process_backend_runs_calls_here_and_on_workers_in_order() -> None:
+    backend = ProcessBackend(3)
+    try:
+        assert backend.map(pow, [(i, 2) for i in range(25)]) == [i * i for i in range(25)]
+        assert backend.map(pow, [(3, 3)]) == [27] and backend.map(pow, []) == []
+        with pytest.raises(ZeroDivisionError):
+            backend.map(divmod, [(1, 1), (2, 1), (1, 0), (4, 2), (5, 1)])
+        assert backend.map(divmod, [(7, 2), (9, 4)]) == [(3, 1), (2, 1)]  # still usable
+    finally:
+        backend.close()
+    assert ProcessBackend(1).map(pow, [(2, 5), (2, 6)]) == [32, 64]  # one job: no pool at all
+    with pytest.raises(ValueError, match="jobs"):
+        ProcessBackend(0)
+
+
+def test_serial_backend_restores_the_thread_count(sim_epochs) -> None:  # noqa: ANN001
+    import numba
+
+    before = numba.get_num_threads()
+    problem = MultiBagProblem.from_epochs(EstimatorParams().config, sim_epochs[:1], "nll", SerialBackend())
+    problem(_positions(problem, 3))
+    assert numba.get_num_threads() == before
+
+
+def test_fold_seeds_differ_and_repeat() -> None:
+    seeds = {fold_seed(3, kind, i) for kind in (1, 2) for i in range(5)}
+    assert len(seeds) == 10 and fold_seed(3, 1, 0) == fold_seed(3, 1, 0)
+
+
+# --------------------------------------------------------------------------- the command
+
+
+def _tuner(*args: object) -> int:
+    return tuner.main([str(a) for a in args])
+
+
+def test_cli_tunes_several_bags_with_a_leave_one_out_table(sim_bags, tmp_path, capsys) -> None:  # noqa: ANN001
+    out, report = tmp_path / "multi.yaml", tmp_path / "report"
+    assert _tuner(*sim_bags, "-o", out, "--particles", "6", "--iterations", "3", "--seed", "5", "--jobs", "1",
+                  "--epoch-cache", tmp_path / "cache", "--report", report) == 0
+    captured = capsys.readouterr()
+    header = [line for line in out.read_text().splitlines() if line.startswith("#")]
+    assert sum(line.startswith("# bag: ") for line in header) == 3
+    assert any("3 bags, 450 epochs" in line for line in header)
+    assert set(read_params_file(out)) >= {"ekf.process_noise", "ekf.measurement_noise"}
+    assert captured.out.count("Table 2 on ") == 3
+    assert "Leave-one-bag-out (nll)" in captured.out
+    table = captured.out.split("Leave-one-bag-out", 1)[1].splitlines()
+    rows = [line for line in table if line.startswith(str(sim_bags[0].parent))]
+    assert len(rows) == 3
+    for row in rows:  # objective x3 and the Cf, Cr errors x3 (the bags have ground truth)
+        assert row.count("%") == 6, row
+    assert "held-out |error| of Cf and Cr with multi-bag Q/R" in captured.out
+    assert captured.err.count("leave-one-out ") == 3
+    assert sum(line.startswith("iteration") for line in captured.err.splitlines()) == 4  # the main run only
+    names = {p.name for p in report.iterdir()}
+    assert {"fig4_objective.png", "report.txt", "leave_one_out.txt"} <= names
+    for n, bag in enumerate(sim_bags, 1):
+        assert f"fig5_stiffness_tuned_{n}_{bag.name}.png" in names
+        assert f"fig6_model_output_tuned_{n}_{bag.name}.png" in names
+    text = (report / "report.txt").read_text()
+    assert text.count("Table 2") == 3 and "Leave-one-bag-out" in text
+
+
+def test_no_leave_one_out_and_cmaes(sim_bags, tmp_path, capsys) -> None:  # noqa: ANN001
+    out = tmp_path / "cmaes.yaml"
+    assert _tuner(*sim_bags[:2], "-o", out, "--algorithm", "cmaes", "--particles", "5", "--iterations", "2",
+                  "--seed", "1", "--jobs", "1", "--no-leave-one-out", "--no-epoch-cache") == 0
+    captured = capsys.readouterr()
+    assert "Leave-one-bag-out" not in captured.out and "cmaes: nll" in captured.out
+    assert "algorithm: cmaes" in out.read_text()
+    assert sum(line.startswith("iteration") for line in captured.err.splitlines()) == 3
+    assert "(decoded)" in captured.err  # no cache: decoded, nothing kept
+
+
+def test_jobs_1_and_2_write_the_same_yaml(sim_bags, tmp_path, capsys) -> None:  # noqa: ANN001
+    texts, tables = [], []
+    for jobs in (1, 2):
+        out = tmp_path / f"jobs{jobs}.yaml"
+        assert _tuner(*sim_bags, "-o", out, "--particles", "6", "--iterations", "3", "--seed", "9",
+                      "--jobs", jobs, "--epoch-cache", tmp_path / f"cache{jobs}") == 0
+        captured = capsys.readouterr()
+        assert f"; {jobs} job" in captured.err
+        texts.append(out.read_bytes())
+        tables.append(captured.out.split("Leave-one-bag-out", 1)[1])
+    assert texts[0] == texts[1]
+    assert tables[0] == tables[1]
+
+
+def test_dask_cluster_writes_the_same_yaml_as_local(sim_bags, tmp_path, capsys) -> None:  # noqa: ANN001
+    """A LocalCluster (2 worker processes, 127.0.0.1 only) gives the YAML of a local run."""
+    psutil = pytest.importorskip("psutil")
+    from distributed import LocalCluster
+
+    common = [*sim_bags[:2], "--particles", "6", "--iterations", "3", "--seed", "2", "--no-leave-one-out",
+              "--epoch-cache", tmp_path / "cache"]
+    assert _tuner("-o", tmp_path / "local.yaml", "--jobs", "1", *common) == 0
+    with LocalCluster(n_workers=2, processes=True, threads_per_worker=1, host="127.0.0.1",
+                      dashboard_address=None) as cluster:
+        assert cluster.scheduler_address.startswith("tcp://127.0.0.1:")
+        listening = [c.laddr.ip for proc in [psutil.Process(), *psutil.Process().children(recursive=True)]
+                     for c in proc.net_connections(kind="inet") if c.status == psutil.CONN_LISTEN]
+        assert listening and set(listening) == {"127.0.0.1"}, listening
+        assert _tuner("-o", tmp_path / "dask.yaml", "--dask", cluster.scheduler_address, *common) == 0
+    captured = capsys.readouterr()
+    assert "Dask cluster tcp://127.0.0.1:" in captured.err
+    assert (tmp_path / "dask.yaml").read_bytes() == (tmp_path / "local.yaml").read_bytes()
+
+
+def test_unreachable_dask_scheduler_is_one_line(sim_bags, tmp_path, capsys, monkeypatch) -> None:  # noqa: ANN001
+    import socket
+
+    monkeypatch.setattr("transplanter_ident.tuning.parallel.DASK_CONNECT_TIMEOUT", 2.0)
+    with socket.socket() as sock:  # a free port on loopback that nothing listens on
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    code = _tuner(sim_bags[0], "-o", tmp_path / "o.yaml", "--dask", f"tcp://127.0.0.1:{port}", "--jobs", "1")
+    assert code == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("tuner: error: --dask") and "cannot connect" in err[0], err
+    assert not (tmp_path / "o.yaml").exists()
+
+
+@pytest.mark.parametrize("flags", [["--jobs", "0"], ["--jobs", "x"], ["--algorithm", "cma"]])
+def test_invalid_new_flags_are_one_line(flags: list[str], tmp_path, capsys) -> None:  # noqa: ANN001
+    with pytest.raises(SystemExit) as exc:
+        tuner.main(["bag", "-o", str(tmp_path / "o.yaml"), *flags])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("tuner: error: argument") and flags[0] in err[0], err
