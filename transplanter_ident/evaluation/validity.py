@@ -13,7 +13,8 @@ of these hold over a window of data time (the same decision online and offline):
   sideslip no transplanter has, or a course that turns against the heading).
 
 Hysteresis: valid only after every check held for ``hold_on`` s; invalid once any has failed
-for ``hold_off`` s (at once for the plausibility and bound checks).
+for ``hold_off`` s (at once for the plausibility and bound checks). The window checks run every
+RECHECK s of data (the same epochs online and offline).
 """
 
 from __future__ import annotations
@@ -38,6 +39,8 @@ from transplanter_ident.ekf.layout import (
 )
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
 
+#: s of data between two evaluations of the window checks
+RECHECK = 0.5
 #: statuses whose innovation is a proper one-step prediction error
 PREDICTED = frozenset({StepStatus.UPDATED, StepStatus.NONLINEAR, StepStatus.GATED})
 
@@ -70,7 +73,12 @@ class Decision:
 
 
 class ValidityMonitor:
-    """Feed every epoch in order with :meth:`step`; returns the decision for that epoch."""
+    """Feed every epoch in order with :meth:`step`; returns the decision for that epoch.
+
+    The per-epoch checks (status, convergence, bounds) run every epoch; the window checks
+    (excitation, consistency, plausibility) every RECHECK s of data, which keeps a replay linear in
+    its length at any GNSS rate.
+    """
 
     def __init__(self, settings: ValiditySettings, bounds: tuple[float, float], lever: float) -> None:
         self.settings = settings
@@ -83,6 +91,9 @@ class ValidityMonitor:
         self._valid = False
         self._good_since: float | None = None
         self._bad_since: float | None = None
+        self._checked_at = -math.inf
+        self._window_hard: list[str] = []
+        self._window_soft: list[str] = []
         self.last = Decision(False, ("no estimate yet",), False)
 
     def step(self, sample: Sample) -> Decision:
@@ -92,7 +103,12 @@ class ValidityMonitor:
         self._window.append(sample)
         while self._window[0].t < sample.t - self.settings.window:
             self._window.popleft()
-        hard, soft = self._hard_failures(sample), self._soft_failures(sample)
+        if sample.t - self._checked_at >= RECHECK:
+            self._checked_at = sample.t
+            window = list(self._window)
+            self._window_hard, self._window_soft = self._plausibility(window), self._consistency(window)
+        hard = self._bounds(sample) + self._window_hard
+        soft = self._epoch_checks(sample) + self._window_soft
         self.last = self._hysteresis(sample.t, hard, soft)
         return self.last
 
@@ -110,20 +126,29 @@ class ValidityMonitor:
                 self._valid = True
         return Decision(self._valid, tuple(hard + soft), bool(hard))
 
-    def _hard_failures(self, sample: Sample) -> list[str]:
-        reasons = []
+    def _bounds(self, sample: Sample) -> list[str]:
         low, high = self.bounds
-        for name, value in (("Cf", sample.cf), ("Cr", sample.cr)):
-            if value <= low * 1.01 or value >= high / 1.01:
-                reasons.append(f"{name} pinned at a stiffness bound ({value:.0f} N/rad): a wrong frame, lever arm "
-                               "or steering sign?")
-        predicted = [w for w in self._window if w.status in PREDICTED and w.speed > 0.0]
+        return [f"{name} pinned at a stiffness bound ({value:.0f} N/rad): a wrong frame, lever arm or steering sign?"
+                for name, value in (("Cf", sample.cf), ("Cr", sample.cr)) if value <= low * 1.01 or value >= high / 1.01]
+
+    def _epoch_checks(self, sample: Sample) -> list[str]:
+        reasons = []
+        if sample.status not in PREDICTED:
+            reasons.append(f"epoch status {sample.status.name}")
+        worst = max(sample.cf_std / sample.cf, sample.cr_std / sample.cr)
+        if not worst <= self.settings.max_rel_std:
+            reasons.append(f"not converged (relative 1-sigma {worst:.3f} > {self.settings.max_rel_std:g})")
+        return reasons
+
+    def _plausibility(self, window: list[Sample]) -> list[str]:
+        reasons = []
+        predicted = [w for w in window if w.status in PREDICTED and w.speed > 0.0]
         if len(predicted) >= 5:
             sideslip = sorted(abs(w.antenna_lateral_velocity) / w.speed for w in predicted)[len(predicted) // 2]
             if sideslip > self.settings.max_sideslip:
                 reasons.append(f"implausible sideslip (median |vy/vx| {sideslip:.2f}): GNSS velocity and heading "
                                "disagree; check frames.velocity / frames.heading (ENU or NED)")
-            if sideslip <= self.settings.max_sideslip and _frames_mixed(predicted):
+            elif _frames_mixed(predicted):
                 reasons.append("the GNSS velocity turns against the heading (its direction changes at -r): "
                                "check frames.velocity / frames.heading (ENU or NED)")
             if self._course_over_ground(predicted):
@@ -136,18 +161,11 @@ class ValidityMonitor:
         rms_vy = math.sqrt(sum(w.antenna_lateral_velocity ** 2 for w in window) / len(window))
         return rms_r > 0.05 and rms_vy < self.settings.course_ratio * abs(self.lever) * rms_r
 
-    def _soft_failures(self, sample: Sample) -> list[str]:
+    def _consistency(self, window: list[Sample]) -> list[str]:
         s = self.settings
-        reasons = []
-        if sample.status not in PREDICTED:
-            reasons.append(f"epoch status {sample.status.name}")
-        worst = max(sample.cf_std / sample.cf, sample.cr_std / sample.cr)
-        if not worst <= s.max_rel_std:
-            reasons.append(f"not converged (relative 1-sigma {worst:.3f} > {s.max_rel_std:g})")
-        window = list(self._window)
         if len(window) < 5 or window[-1].t - window[0].t < 0.5 * s.window:
-            reasons.append("too little data in the window")
-            return reasons
+            return ["too little data in the window"]
+        reasons = []
         nonlinear = sum(w.status is StepStatus.NONLINEAR for w in window) / len(window)
         if nonlinear > s.max_nonlinear_fraction:
             reasons.append(f"the tires left their linear range in {100 * nonlinear:.0f} % of the window: the "
