@@ -73,6 +73,9 @@ def ros_env(domain: int, extra: dict[str, str] | None = None) -> dict[str, str]:
     env["RMW_IMPLEMENTATION"] = "rmw_fastrtps_cpp"
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), str(HERE), env.get("PYTHONPATH", "")) if p)
     env["PYTHONUNBUFFERED"] = "1"
+    # a ROS_HOME of its own: the node keeps its learned state there (persistence.file), and one test's
+    # state must not become the next test's starting point
+    env["ROS_HOME"] = tempfile.mkdtemp(prefix="ros_home_")
     env.update(extra or {})
     return env
 
