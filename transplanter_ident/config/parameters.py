@@ -29,13 +29,8 @@ class VehicleParams:
     steering_offset: float = 0.0  # rad: wheel angle = sensor - offset (initial value, or fixed)
 
     def __post_init__(self) -> None:
-        for name in ("mass", "lf", "lr", "max_steering"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0.0):
-                raise ValueError(f"vehicle.{name} must be a positive finite number, got {value!r}")
-        for name in ("iz", "antenna_x", "antenna_y", "steering_offset"):
-            if not math.isfinite(getattr(self, name)):
-                raise ValueError(f"vehicle.{name} must be finite")
+        check_fields(self, "vehicle", positive=("mass", "lf", "lr", "max_steering"),
+                     finite=("iz", "antenna_x", "antenna_y", "steering_offset"))
 
     @property
     def yaw_inertia(self) -> float:
@@ -81,11 +76,8 @@ class FilterOptions:
         if not self.max_interval > 0.0:
             raise ValueError(f"ekf.max_interval must be > 0, got {self.max_interval}")
         _check_choice("ekf.process_noise_units", self.process_noise_units, NOISE_UNITS)
-        for key in ("process_noise_step", "max_slip_angle", "max_lateral_acceleration", "change_process_noise",
-                    "change_hold"):
-            value = getattr(self, key)
-            if not (math.isfinite(value) and value > 0.0):
-                raise ValueError(f"ekf.{key} must be a positive finite number, got {value!r}")
+        check_fields(self, "ekf", positive=("process_noise_step", "max_slip_angle", "max_lateral_acceleration",
+                                            "change_process_noise", "change_hold"))
         if not (math.isfinite(self.change_scale) and self.change_scale > 1.0):
             raise ValueError(f"ekf.change_scale must be > 1, got {self.change_scale!r}")
         if not (math.isfinite(self.change_threshold) and self.change_threshold > 0.0):
@@ -153,15 +145,10 @@ class ValiditySettings:
     max_nonlinear_fraction: float = 0.2  # of the window's epochs beyond the linear tire range
 
     def __post_init__(self) -> None:
-        for name in ("window", "max_rel_std", "nis_quantile_sigmas", "max_autocorrelation", "max_sideslip",
-                     "course_ratio", "max_nonlinear_fraction"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0.0):
-                raise ValueError(f"validity.{name} must be a positive finite number, got {value!r}")
-        for name in ("min_steering_std", "min_yaw_rate_std", "hold_on", "hold_off"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0.0):
-                raise ValueError(f"validity.{name} must be a finite number >= 0, got {value!r}")
+        check_fields(self, "validity", positive=("window", "max_rel_std", "nis_quantile_sigmas",
+                                                 "max_autocorrelation", "max_sideslip", "course_ratio",
+                                                 "max_nonlinear_fraction"),
+                     non_negative=("min_steering_std", "min_yaw_rate_std", "hold_on", "hold_off"))
 
 
 
@@ -172,6 +159,18 @@ class EstimatorConfig:
     vehicle: VehicleParams = field(default_factory=VehicleParams)
     options: FilterOptions = field(default_factory=FilterOptions)
     noise: NoiseParams = field(default_factory=NoiseParams)
+
+
+def check_fields(obj: object, namespace: str, *, positive: tuple[str, ...] = (), non_negative: tuple[str, ...] = (),
+                 finite: tuple[str, ...] = ()) -> None:
+    """Raise ValueError naming ``namespace.field`` for the first field that is not as required."""
+    for names, test, what in ((positive, lambda v: v > 0.0, "a positive finite number"),
+                              (non_negative, lambda v: v >= 0.0, "a finite number >= 0"),
+                              (finite, lambda v: True, "finite")):
+        for name in names:
+            value = getattr(obj, name)
+            if isinstance(value, bool) or not (math.isfinite(value) and test(value)):
+                raise ValueError(f"{namespace}.{name} must be {what}, got {value!r}")
 
 
 def _check_choice(key: str, value: str, choices: tuple[str, ...]) -> None:

@@ -17,6 +17,7 @@ import math
 from collections import Counter
 from dataclasses import dataclass, field
 
+from transplanter_ident.config.parameters import check_fields
 from transplanter_ident.ekf.joint_ekf import Estimate
 from transplanter_ident.ekf.layout import StepStatus
 from transplanter_ident.epochs.epoch import Epoch, Rejection
@@ -53,14 +54,8 @@ class HealthThresholds:
     rate_window: float = 5.0  # s of arrivals over which input rates are computed
 
     def __post_init__(self) -> None:
-        for name in ("stale_timeout", "window", "converged_rel_std", "rate_window"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0.0):
-                raise ValueError(f"diagnostics.{name} must be a positive finite number, got {value!r}")
-        for name in ("min_steering_rms", "min_yaw_rate_rms"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0.0):
-                raise ValueError(f"diagnostics.{name} must be a finite number >= 0, got {value!r}")
+        check_fields(self, "diagnostics", positive=("stale_timeout", "window", "converged_rel_std", "rate_window"),
+                     non_negative=("min_steering_rms", "min_yaw_rate_rms"))
         if self.min_window_epochs < 1:
             raise ValueError(f"diagnostics.min_window_epochs must be >= 1, got {self.min_window_epochs!r}")
 

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from transplanter_ident.config.parameters import VehicleParams
+from transplanter_ident.config.parameters import VehicleParams, check_fields
 from transplanter_ident.epochs.frames import wrap_angle
 from transplanter_ident.sim.signals import (
     Signal,
@@ -59,10 +59,7 @@ class SensorNoise:
     steering: float = math.radians(0.1)  # rad, steering-angle sensor
 
     def __post_init__(self) -> None:
-        for name in ("velocity", "heading", "steering"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0.0):
-                raise ValueError(f"noise.{name} must be >= 0, got {value!r}")
+        check_fields(self, "noise", non_negative=("velocity", "heading", "steering"))
 
 
 @dataclass(frozen=True)
