@@ -201,3 +201,24 @@ def test_duplicate_joint_names_are_rejected(tmp_path: Path) -> None:
     data = read_bag(bag, EstimatorParams())
     assert [(r.topic, r.kind) for r in data.rejections] == [("steering", checks.DUPLICATE_JOINT)]
     assert len(data.epochs) == 39
+
+
+def test_each_reason_is_counted_in_the_diagnostics(drive) -> None:
+    """/diagnostics lists rejected_<kind> per input; the pairing line follows the assembler."""
+    from transplanter_ident.evaluation.health import HealthMonitor, HealthThresholds
+
+    samples = inserted(drive, 30.0, ("steering", 130.0, (0.3,)))
+    samples = [(n, s, (1.0e30, v[1])) if n == "velocity" and abs(s - 50.0) < 1e-9 else (n, s, v)
+               for n, s, v in samples]
+    assembler = EpochAssembler(SETTINGS)
+    monitor = HealthMonitor(HealthThresholds(), 0.0)
+    assemble(assembler, samples)
+    for rejection in assembler.drain_rejections():
+        monitor.on_rejection(rejection, 1.0)
+    monitor.on_pairing(assembler.pairing, 1.0)
+    reports = {r.name: r for r in monitor.report(1.0)}
+    assert reports["estimator: steering input"].value("rejected_stamp_jump") == "1"
+    assert reports["estimator: velocity input"].value("rejected_speed_limit") == "1"
+    assert reports["estimator: heading input"].value("rejected_unpaired") == "1"
+    pairing = reports["estimator: GNSS pairing"]
+    assert pairing.level == 1 and pairing.value("unpaired") == "1"

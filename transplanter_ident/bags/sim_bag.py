@@ -32,9 +32,8 @@ from transplanter_ident.bags.messages import (
     yaw_quaternion,
 )
 from transplanter_ident.bags.writer import BagWriter
+from transplanter_ident.sim.drivers import HEADING_TYPES, VELOCITY_TYPES
 
-VELOCITY_TYPES = ("twist", "twist-cov", "odometry")
-HEADING_TYPES = ("quaternion", "imu", "pose-cov", "odometry")
 INVALID_MARKERS = ("nan", "covariance")
 
 

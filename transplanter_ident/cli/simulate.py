@@ -24,11 +24,9 @@ import argparse
 import sys
 
 from transplanter_ident.cli.util import CliError, cli_main
-from transplanter_ident.sim.drivers import DRIVERS
+from transplanter_ident.sim.drivers import DRIVERS, HEADING_TYPES, VELOCITY_TYPES
 from transplanter_ident.sim.scenarios import DEFAULT_SCENARIO, SCENARIOS
 
-VELOCITY_TYPES = ("twist", "twist-cov", "odometry")
-HEADING_TYPES = ("quaternion", "imu", "pose-cov", "odometry")
 #: SimBagOptions field -> the option that sets it
 ENCODING_OPTIONS = ("velocity_type", "heading_type", "steering_type", "velocity_frame", "heading_frame", "heading_lag",
                     "heading_lag_jitter", "heading_offset", "invalid_fraction", "invalid_marker", "velocity_topic",

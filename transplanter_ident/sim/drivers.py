@@ -13,6 +13,10 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+#: message types ``simulate`` writes (bags.sim_bag.SimBagOptions): velocity and heading
+VELOCITY_TYPES = ("twist", "twist-cov", "odometry")
+HEADING_TYPES = ("quaternion", "imu", "pose-cov", "odometry")
+
 
 @dataclass(frozen=True)
 class DriverShape:
