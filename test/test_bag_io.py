@@ -66,18 +66,23 @@ def _messages(frame_id: str, rng: np.random.Generator, joint_names: list[str]):
     head = _header(1_700_000_123, 456_789_012, frame_id)
     positions = rng.normal(size=len(joint_names))
     empty = np.zeros(0)
+    covariance = rng.normal(size=36)
+    twist_cov = T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=covariance)
+    point = T["geometry_msgs/msg/Point"](x=1.0, y=2.0, z=3.0)
+    pose_cov = T["geometry_msgs/msg/PoseWithCovariance"](pose=T["geometry_msgs/msg/Pose"](
+        position=point, orientation=quat(*q)), covariance=rng.normal(size=36))
     return {
         bag_io.TWIST_STAMPED: (T[bag_io.TWIST_STAMPED](header=head, twist=twist), (lin.x, lin.y)),
-        bag_io.TWIST_COV_STAMPED: (T[bag_io.TWIST_COV_STAMPED](
-            header=head, twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist,
-                                                                         covariance=rng.normal(size=36))),
-            (lin.x, lin.y)),
-        bag_io.QUATERNION_STAMPED: (T[bag_io.QUATERNION_STAMPED](header=head, quaternion=quat(*q)),
-                                    (quaternion_yaw(*q),)),
+        bag_io.TWIST_COV_STAMPED: (T[bag_io.TWIST_COV_STAMPED](header=head, twist=twist_cov),
+                                   (lin.x, lin.y, covariance[0], covariance[7])),
+        bag_io.ODOMETRY: (T[bag_io.ODOMETRY](header=head, child_frame_id="base_link", pose=pose_cov, twist=twist_cov),
+                          (lin.x, lin.y, covariance[0], covariance[7])),
+        bag_io.POSE_COV_STAMPED: (T[bag_io.POSE_COV_STAMPED](header=head, pose=pose_cov), tuple(q)),
+        bag_io.QUATERNION_STAMPED: (T[bag_io.QUATERNION_STAMPED](header=head, quaternion=quat(*q)), tuple(q)),
         bag_io.IMU: (T[bag_io.IMU](header=head, orientation=quat(*q), orientation_covariance=rng.normal(size=9),
                                    angular_velocity=ang, angular_velocity_covariance=np.zeros(9),
                                    linear_acceleration=lin, linear_acceleration_covariance=np.zeros(9)),
-                     (quaternion_yaw(*q),)),
+                     tuple(q)),
         bag_io.JOINT_STATE: (T[bag_io.JOINT_STATE](header=head, name=joint_names, position=positions,
                                                    velocity=positions * 2, effort=empty),
                              (float(positions[joint_names.index("front_steering")]),)),
@@ -96,6 +101,11 @@ def test_decode_message_every_type(little_endian: bool) -> None:
         assert values == pytest.approx(expected, rel=0, abs=1e-15), msgtype
         expected_stamp = log_ns / 1e9 if msgtype == bag_io.FLOAT64 else 1_700_000_123_456_789_012 / 1e9
         assert stamp == expected_stamp, msgtype
+    odometry, _ = _messages("base_link", np.random.default_rng(1), names)[bag_io.ODOMETRY]
+    data = bytes(TS.serialize_cdr(odometry, bag_io.ODOMETRY))
+    orientation = odometry.pose.pose.orientation
+    assert decode_message(bag_io.ODOMETRY, data, log_ns, role="heading")[1] == (
+        orientation.x, orientation.y, orientation.z, orientation.w)
 
 
 def test_quaternion_yaw_round_trip() -> None:

@@ -245,7 +245,7 @@ def test_descriptors_read_only_and_ranges() -> None:
     ("ekf.process_noise", [1e-4, -1e-4, 1e-6, 1e-6], ">= 0"),
     ("ekf.process_noise", [1e-4, math.nan, 1e-6, 1e-6], "finite"),
     ("ekf.measurement_noise", [0.0, 1e-5], "> 0"),
-    ("topics.velocity_type", "Odometry", "topics.velocity_type"),
+    ("topics.velocity_type", "NavSatFix", "topics.velocity_type"),
     ("diagnostics.stale_timeout", -1.0, "stale_timeout"),
 ])
 def test_validate_rejects_with_a_reason(key: str, value: Any, reason: str) -> None:

@@ -176,7 +176,7 @@ def test_integers_are_accepted_where_floats_are_due(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(("body", "reason"), [
     ("    vehicle: {mass: 1.0e6}\n", "vehicle.mass must be within"),
-    ("    topics: {velocity_type: Odometry}\n", "topics.velocity_type must be one of"),
+    ("    topics: {velocity_type: NavSatFix}\n", "topics.velocity_type must be one of"),
     ("    diagnostics: {min_window_epochs: 2.0}\n", "diagnostics.min_window_epochs must be an integer"),
     ("    output: {frame_id: 7}\n", "output.frame_id must be a string"),
 ])

@@ -88,7 +88,7 @@ def test_alternative_types_frames_and_topics(tmp_path: Path) -> None:
                  "--velocity-topic", "/fix/vel", "--no-truth", "--gnss-rate", "10", "--steering-rate", "20",
                  "--tire", "saturating", "--antenna-x", "0.5")
     assert result.returncode == 0, result.stderr
-    assert "vehicle.antenna_x 0.5" in result.stdout and "velocity: ned" in result.stdout
+    assert "vehicle.antenna_x 0.5" in result.stdout and "frames.velocity ned" in result.stdout
     assert topics(bag) == {
         "/fix/vel": ("geometry_msgs/msg/TwistWithCovarianceStamped", 101),
         "/gnss/heading": ("sensor_msgs/msg/Imu", 101),

@@ -1,16 +1,24 @@
 """Message types of the bags, and the decoding of one message into ``(stamp, values)``.
 
 The configured velocity, heading and steering topics are read in every accepted message type
-(DESIGN.md section 3):
+(DESIGN.md section 3, issue #12). Each becomes a sample for one input of the
+:class:`~transplanter_ident.epochs.assembler.EpochAssembler` (``assemble``'s names):
 
-* velocity, ``geometry_msgs/TwistStamped`` or ``TwistWithCovarianceStamped``: ``(linear.x, linear.y)``;
-* heading, ``geometry_msgs/QuaternionStamped`` or ``sensor_msgs/Imu``: ``(yaw,)`` of the quaternion,
-  ``atan2(2(wz + xy), 1 - 2(y^2 + z^2))``;
-* steering, ``sensor_msgs/JointState`` (joint ``steering.joint_name``) or ``std_msgs/Float64``: ``(angle,)``.
+* velocity, ``geometry_msgs/TwistStamped``: ``velocity`` ``(linear.x, linear.y)`` in frames.velocity;
+  ``TwistWithCovarianceStamped``: the same plus the covariance diagonal ``(c[0], c[7])`` (a negative or
+  NaN entry is a driver's invalid marker); ``nav_msgs/Odometry``: ``velocity_body``, the twist in the
+  child (body) frame with its covariance diagonal;
+* heading, ``geometry_msgs/QuaternionStamped``, ``sensor_msgs/Imu``, ``PoseWithCovarianceStamped`` or
+  ``nav_msgs/Odometry``: ``heading_quaternion`` ``(x, y, z, w)`` of the orientation (the assembler checks
+  its norm and takes its yaw). One Odometry topic may serve velocity and heading;
+* steering, ``sensor_msgs/JointState`` (joint ``steering.joint_name``; duplicate names refused) or
+  ``std_msgs/Float64``: ``steering`` ``(angle,)``.
 
 The stamp is ``header.stamp`` in seconds; ``std_msgs/Float64`` has no header and a zero header
-stamp means "unset", so those use the log time. Each message is deserialised with the Jazzy
-typestore and its fields are taken by an extractor chosen once per connection.
+stamp means "unset", so those use the log time (the receive time of the recorder; online the node
+takes its ROS clock, which ``ros2 bag play --clock`` with use_sim_time makes the log time again).
+Each message is deserialised with the Jazzy typestore and its fields are taken by an extractor
+chosen once per connection.
 """
 from __future__ import annotations
 
@@ -22,7 +30,8 @@ from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 
 from transplanter_ident.config.schema import PARAMS
-from transplanter_ident.epochs.frames import quaternion_yaw, stamp_seconds
+from transplanter_ident.epochs.checks import OTHER, joint_angle
+from transplanter_ident.epochs.frames import stamp_seconds
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
@@ -30,18 +39,13 @@ TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
 TWIST_COV_STAMPED = "geometry_msgs/msg/TwistWithCovarianceStamped"
 QUATERNION_STAMPED = "geometry_msgs/msg/QuaternionStamped"
 IMU = "sensor_msgs/msg/Imu"
+POSE_COV_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
+ODOMETRY = "nav_msgs/msg/Odometry"
 JOINT_STATE = "sensor_msgs/msg/JointState"
 FLOAT64 = "std_msgs/msg/Float64"
 VECTOR3_STAMPED = "geometry_msgs/msg/Vector3Stamped"
 
 ROLES = ("velocity", "heading", "steering")
-#: message types accepted per input role (DESIGN.md section 3)
-ACCEPTED_TYPES: dict[str, tuple[str, ...]] = {
-    "velocity": (TWIST_STAMPED, TWIST_COV_STAMPED),
-    "heading": (QUATERNION_STAMPED, IMU),
-    "steering": (JOINT_STATE, FLOAT64),
-}
-
 TRUTH_STIFFNESS_TOPIC = "/sim/cornering_stiffness"  # Vector3Stamped: x = Cf, y = Cr
 TRUTH_VELOCITY_TOPIC = "/sim/body_velocity"  # TwistStamped at the CG: linear.x vx, linear.y vy, angular.z r
 
@@ -81,7 +85,11 @@ def normalize_msgtype(msgtype: str) -> str:
 
 
 class _Unusable(Exception):
-    """A message that deserialises but lacks what is needed (the reason is the message)."""
+    """A message that deserialises but lacks what is needed (the reason is the message; ``kind`` its class)."""
+
+    def __init__(self, reason: str, kind: str = OTHER) -> None:
+        super().__init__(reason)
+        self.kind = kind
 
 
 #: errors of deserialising one message's bytes (rosbags wraps struct/unicode/value errors in SerdeError)
@@ -103,27 +111,36 @@ def _from_twist(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[float,
 
 
 def _from_twist_cov(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
-    linear = msg.twist.twist.linear
-    return _stamp(msg, log_ns), (linear.x, linear.y)
+    linear, covariance = msg.twist.twist.linear, msg.twist.covariance
+    return _stamp(msg, log_ns), (linear.x, linear.y, float(covariance[0]), float(covariance[7]))
+
+
+def _from_odometry_twist(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
+    linear, covariance = msg.twist.twist.linear, msg.twist.covariance
+    return _stamp(msg, log_ns), (linear.x, linear.y, float(covariance[0]), float(covariance[7]))
+
+
+def _quaternion(q: Any) -> tuple[float, float, float, float]:
+    return float(q.x), float(q.y), float(q.z), float(q.w)
 
 
 def _from_quaternion(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
-    q = msg.quaternion
-    return _stamp(msg, log_ns), (quaternion_yaw(q.x, q.y, q.z, q.w),)
+    return _stamp(msg, log_ns), _quaternion(msg.quaternion)
 
 
 def _from_imu(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
-    q = msg.orientation
-    return _stamp(msg, log_ns), (quaternion_yaw(q.x, q.y, q.z, q.w),)
+    return _stamp(msg, log_ns), _quaternion(msg.orientation)
+
+
+def _from_pose(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
+    return _stamp(msg, log_ns), _quaternion(msg.pose.pose.orientation)
 
 
 def _from_joint_state(msg: Any, log_ns: int, joint: str) -> tuple[float, tuple[float, ...]]:
-    if joint not in msg.name:
-        raise _Unusable(f"joint {joint!r} not in the JointState")
-    index = msg.name.index(joint)
-    if index >= len(msg.position):
-        raise _Unusable(f"joint {joint!r} has no position")
-    return _stamp(msg, log_ns), (float(msg.position[index]),)
+    angle, kind, reason = joint_angle(msg.name, msg.position, joint)
+    if angle is None:
+        raise _Unusable(reason, kind)
+    return _stamp(msg, log_ns), (angle,)
 
 
 def _from_float64(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
@@ -140,27 +157,31 @@ def _from_twist_truth(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[
     return _stamp(msg, log_ns), (twist.linear.x, twist.linear.y, twist.angular.z)
 
 
-#: extractor of the input samples per accepted message type
+#: role -> accepted message type -> (the assembler input its samples go to, extractor) (DESIGN.md section 3)
+INPUT_TYPES: dict[str, dict[str, tuple[str, Extractor]]] = {
+    "velocity": {TWIST_STAMPED: ("velocity", _from_twist), TWIST_COV_STAMPED: ("velocity", _from_twist_cov),
+                 ODOMETRY: ("velocity_body", _from_odometry_twist)},
+    "heading": {QUATERNION_STAMPED: ("heading_quaternion", _from_quaternion),
+                IMU: ("heading_quaternion", _from_imu),
+                POSE_COV_STAMPED: ("heading_quaternion", _from_pose),
+                ODOMETRY: ("heading_quaternion", _from_pose)},
+    "steering": {JOINT_STATE: ("steering", _from_joint_state), FLOAT64: ("steering", _from_float64)},
+}
+#: message types accepted per input role
+ACCEPTED_TYPES: dict[str, tuple[str, ...]] = {role: tuple(types) for role, types in INPUT_TYPES.items()}
+#: extractor per message type, for the role a type serves first (Odometry: velocity)
 EXTRACTORS: dict[str, Extractor] = {
-    TWIST_STAMPED: _from_twist,
-    TWIST_COV_STAMPED: _from_twist_cov,
-    QUATERNION_STAMPED: _from_quaternion,
-    IMU: _from_imu,
-    JOINT_STATE: _from_joint_state,
-    FLOAT64: _from_float64,
+    **{msgtype: entry[1] for role in reversed(ROLES) for msgtype, entry in INPUT_TYPES[role].items()},
     VECTOR3_STAMPED: _from_vector3,
 }
 
 
-def decode_message(msgtype: str, data: bytes, log_ns: int, joint_name: str = "front_steering") -> tuple:
-    """Decode one serialized input message to ``(stamp s, values)`` as the reader does (for tests/tools)."""
+def decode_message(msgtype: str, data: bytes, log_ns: int, joint_name: str = "front_steering",
+                   role: str | None = None) -> tuple:
+    """Decode one serialized input message to ``(stamp s, values)`` as the reader does (for tests/tools).
+
+    ``role`` picks what a nav_msgs/Odometry is read as (velocity, the default, or heading).
+    """
     msgtype = normalize_msgtype(msgtype)
-    return EXTRACTORS[msgtype](TYPESTORE.deserialize_cdr(data, msgtype), log_ns, joint_name)
-
-
-# --------------------------------------------------------------------------- reading
-
-
-# --------------------------------------------------------------------------- writing
-
-
+    extract = INPUT_TYPES[role][msgtype][1] if role is not None else EXTRACTORS[msgtype]
+    return extract(TYPESTORE.deserialize_cdr(data, msgtype), log_ns, joint_name)

@@ -26,7 +26,7 @@ from transplanter_ident.bags.errors import BagError
 from transplanter_ident.bags.messages import (
     _DECODE_ERRORS,
     ACCEPTED_TYPES,
-    EXTRACTORS,
+    INPUT_TYPES,
     ROLES,
     TRUTH_STIFFNESS_TOPIC,
     TRUTH_VELOCITY_TOPIC,
@@ -40,6 +40,7 @@ from transplanter_ident.bags.messages import (
     normalize_msgtype,
     seconds,
 )
+from transplanter_ident.epochs import checks
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
 from transplanter_ident.epochs.epoch import EpochArrays, Rejection
 from transplanter_ident.files import Progress, one_line
@@ -128,8 +129,9 @@ def open_reader(path: str | Path) -> Iterator[Reader]:
             pass
 
 
-#: connection id -> (role, normalised message type, extractor)
-_Table = dict[int, tuple[str, str, Extractor]]
+#: connection id -> [(role, assembler input, normalised message type, extractor)]: one nav_msgs/Odometry
+#: connection may serve velocity and heading
+_Table = dict[int, list[tuple[str, str, str, Extractor]]]
 
 
 def _topic_types(reader: Reader) -> dict[str, list[Any]]:
@@ -161,7 +163,8 @@ def _select(path: str | Path, reader: Reader, params: Any) -> _Table:
             raise BagError(f"{path}: topic {topic} (the {role} input) has no messages")
         for conn in good:
             msgtype = normalize_msgtype(conn.msgtype)
-            table[conn.id] = (role, msgtype, EXTRACTORS[msgtype])
+            name, extract = INPUT_TYPES[role][msgtype]
+            table.setdefault(conn.id, []).append((role, name, msgtype, extract))
     return table
 
 
@@ -175,7 +178,7 @@ def _select_truth(reader: Reader, notes: list[str]) -> _Table:
     ):
         for conn in topics.get(topic, []):
             if normalize_msgtype(conn.msgtype) == msgtype:
-                table[conn.id] = (role, msgtype, extract)
+                table[conn.id] = [(role, role, msgtype, extract)]
             else:
                 notes.append(f"ground truth topic {topic} has type {conn.msgtype}, not {msgtype}: ignored")
     return table
@@ -212,21 +215,27 @@ class _Scan:
                 if n >= next_report:
                     progress.update(n)
                     next_report = progress.next_at
-                role, msgtype, extract = table[conn.id]
+                entries = table[conn.id]
                 try:
-                    stamp, values = extract(deserialize(data, msgtype), log_ns, joint)
-                except _Unusable as exc:
-                    self.rejections.append(Rejection(role.removeprefix("truth_"), seconds(log_ns), str(exc)))
-                    continue
+                    msg = deserialize(data, entries[0][2])
                 except _DECODE_ERRORS:
                     reason = f"undecodable {conn.msgtype} message"
-                    self.rejections.append(Rejection(role.removeprefix("truth_"), seconds(log_ns), reason))
+                    for role, *_ in entries:
+                        self.rejections.append(Rejection(role.removeprefix("truth_"), seconds(log_ns), reason,
+                                                         checks.UNDECODABLE))
                     continue
-                counts[role] += 1
-                if role in truth_rows:
-                    truth_rows[role].append((stamp, values))
-                else:
-                    yield role, stamp, values
+                for role, name, _msgtype, extract in entries:
+                    try:
+                        stamp, values = extract(msg, log_ns, joint)
+                    except _Unusable as exc:
+                        self.rejections.append(Rejection(role.removeprefix("truth_"), seconds(log_ns), str(exc),
+                                                         exc.kind))
+                        continue
+                    counts[role] += 1
+                    if role in truth_rows:
+                        truth_rows[role].append((stamp, values))
+                    else:
+                        yield name, stamp, values
             if progress is not None:
                 progress.done()
 
@@ -249,12 +258,13 @@ def _build_truth(rows: dict[str, list[tuple[float, tuple[float, ...]]]]) -> Trut
 
 def read_samples(path: str | Path, params: Any,
                  rejections: list[Rejection] | None = None) -> Iterator[tuple[str, float, tuple[float, ...]]]:
-    """Stream ``(role, stamp s, values)`` input samples in log-time order.
+    """Stream ``(input, stamp s, values)`` samples in log-time order, as :func:`~..epochs.assembler.assemble` takes them.
 
-    ``role`` is ``velocity`` (values east/north or north/east by frame), ``heading`` (yaw) or
-    ``steering`` (angle). Messages that do not decode (a JointState without the steering joint,
-    malformed bytes) are skipped and appended to ``rejections`` if given. ``params`` is a
-    ``params_file.EstimatorParams`` (topics, steering.joint_name are used).
+    ``input`` is ``velocity`` (east/north or north/east by frame[, covariance diagonal]),
+    ``velocity_body`` (an Odometry twist in body axes, covariance diagonal), ``heading_quaternion``
+    (x, y, z, w) or ``steering`` (angle). Messages that do not decode (a JointState without the
+    steering joint, malformed bytes) are skipped and appended to ``rejections`` if given. ``params``
+    is a ``params_file.EstimatorParams`` (topics, steering.joint_name are used).
     """
     scan = _Scan(path, params, truth=False, progress=False)
     try:
@@ -280,11 +290,34 @@ def read_bag(path: str | Path, params: Any, *, truth: bool = True, progress: boo
         summary = ", ".join(f"{counts[r]} {r}" for r in ROLES)
         top = summarize_rejections(rejections)[:1]
         why = f"; most common rejection: {top[0][0]}: {top[0][1]} ({top[0][2]}x)" if top else ""
-        raise BagError(f"{path}: no epoch could be formed from {summary} messages{why}")
+        notes = "".join(f"; {note}" for note in _input_notes(assembler, rejections))
+        raise BagError(f"{path}: no epoch could be formed from {summary} messages{why}{notes}")
     truth_data = _build_truth(scan.truth_rows) if truth else None
     if truth:
         counts["truth"] = scan.counts.get("truth_stiffness", 0)
-    return BagData(Path(path), EpochArrays(epochs), rejections, truth_data, counts, scan.notes)
+    notes = scan.notes + _input_notes(assembler, rejections)
+    return BagData(Path(path), EpochArrays(epochs), rejections, truth_data, counts, notes)
+
+
+def _input_notes(assembler: EpochAssembler, rejections: Sequence[Rejection]) -> list[str]:
+    """Plain-language notes on velocity/heading that did not pair and on time steps (replay prints them)."""
+    notes = []
+    stats = assembler.pairing
+    if stats.misses:
+        share = stats.misses / max(1, stats.misses + 2 * stats.pairs)
+        note = (f"{stats.misses} GNSS velocity/heading samples ({100 * share:.0f} %) found no partner within "
+                f"gnss.pairing_tolerance {1e3 * stats.tolerance:g} ms")
+        if stats.last_offset is not None:
+            late = "after" if stats.last_offset > 0 else "before"
+            note += (f"; they missed by up to {1e3 * stats.largest_miss:.0f} ms (the last: heading stamped "
+                     f"{1e3 * abs(stats.last_offset):.0f} ms {late} the velocity): if they describe one receiver "
+                     f"epoch, set gnss.pairing_tolerance above {1e3 * stats.largest_miss:.0f} ms")
+        notes.append(note)
+    resyncs = [r for r in rejections if r.kind == checks.RESYNC and r.topic != "epoch"]
+    if resyncs:
+        notes.append(f"{len(resyncs)} input time step(s) re-synchronised; the first: {resyncs[0].topic} at "
+                     f"t={resyncs[0].stamp:.3f}: {resyncs[0].reason}")
+    return notes
 
 
 def read_epochs(path: str | Path, params: Any) -> tuple[EpochArrays, list[Rejection]]:
@@ -302,7 +335,7 @@ def read_truth(path: str | Path) -> Truth | None:
             return None
         connections = [c for c in reader.connections if c.id in table]
         for conn, log_ns, data in reader.messages(connections=connections):
-            role, msgtype, extract = table[conn.id]
+            role, _name, msgtype, extract = table[conn.id][0]
             try:
                 rows[role].append(extract(TYPESTORE.deserialize_cdr(data, msgtype), log_ns, ""))
             except _DECODE_ERRORS as exc:
@@ -311,10 +344,10 @@ def read_truth(path: str | Path) -> Truth | None:
 
 
 def summarize_rejections(rejections: Sequence[Rejection]) -> list[tuple[str, str, int]]:
-    """(topic, reason, count), most frequent first; per-sample numbers in reasons are merged."""
+    """(topic, reason, count), most frequent first; per-sample numbers in reasons are merged (by kind)."""
     counts: Counter[tuple[str, str]] = Counter()
     for rejection in rejections:
-        reason = rejection.reason
+        reason = checks.SUMMARY_LABELS.get(rejection.kind, rejection.reason)
         if reason.startswith("|") and "beyond max_steering" in reason:
             reason = "beyond max_steering" + reason.split("beyond max_steering", 1)[1]
         counts[(rejection.topic, reason)] += 1

@@ -1,15 +1,15 @@
 """Writing rosbag2 bags (MCAP) with the ROS 2 Jazzy typestore, atomically.
 
-:class:`BagWriter` builds the bag under a temporary name and renames it when complete.
-:func:`write_sim_bag` writes a simulated run (input topics plus ``/sim/*`` ground truth);
-:func:`write_output_bag` the node's output topics for a replayed bag.
+:class:`BagWriter` builds the bag under a temporary name and renames it when complete; it writes
+every input message type the estimator accepts (including the drivers' shapes of issue #12).
+:func:`write_output_bag` writes the node's output topics for a replayed bag; simulated runs are
+written by :mod:`.sim_bag`.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -23,21 +23,20 @@ from transplanter_ident.bags.messages import (
     IMU,
     JOINT_STATE,
     NS_PER_S,
+    ODOMETRY,
     OUTPUT_FRAME_ID,
     OUTPUT_MEASUREMENT,
     OUTPUT_MODEL,
     OUTPUT_NAMESPACE,
     OUTPUT_STIFFNESS,
     OUTPUT_STIFFNESS_STD,
+    POSE_COV_STAMPED,
     QUATERNION_STAMPED,
-    TRUTH_STIFFNESS_TOPIC,
-    TRUTH_VELOCITY_TOPIC,
     TWIST_COV_STAMPED,
     TWIST_STAMPED,
     TYPESTORE,
     VECTOR3_STAMPED,
     to_ns,
-    yaw_quaternion,
 )
 from transplanter_ident.bags.reader import _reason
 from transplanter_ident.epochs.epoch import EpochArrays
@@ -61,6 +60,13 @@ def _vector3(xyz: Sequence[float]) -> Any:
 
 def _quaternion(q: Sequence[float]) -> Any:
     return _types()["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
+
+
+def _pose_with_covariance(orientation: Sequence[float]) -> Any:
+    types = _types()
+    pose = types["geometry_msgs/msg/Pose"](position=types["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
+                                           orientation=_quaternion(orientation))
+    return types["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36))
 
 
 class BagWriter:
@@ -147,6 +153,24 @@ class BagWriter:
                                                                                            covariance=cov))
         self.write(topic, TWIST_COV_STAMPED, msg, stamp_ns if log_ns is None else log_ns)
 
+    def write_odometry(self, topic: str, stamp_ns: int, linear: Sequence[float], orientation: Sequence[float],
+                       twist_covariance: Sequence[float] | None = None, *, frame_id: str = "odom",
+                       child_frame_id: str = "base_link", log_ns: int | None = None) -> None:
+        """nav_msgs/Odometry: the twist ``linear`` in the child (body) frame, the pose's ``orientation`` (x, y, z, w)."""
+        types = _types()
+        twist = types["geometry_msgs/msg/Twist"](linear=_vector3(linear), angular=_vector3((0.0, 0.0, 0.0)))
+        cov = np.zeros(36) if twist_covariance is None else np.asarray(twist_covariance, dtype=np.float64).reshape(36)
+        msg = types[ODOMETRY](header=_header(stamp_ns, frame_id), child_frame_id=child_frame_id,
+                              pose=_pose_with_covariance(orientation),
+                              twist=types["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=cov))
+        self.write(topic, ODOMETRY, msg, stamp_ns if log_ns is None else log_ns)
+
+    def write_pose_with_covariance(self, topic: str, stamp_ns: int, orientation: Sequence[float], *,
+                                   frame_id: str = "", log_ns: int | None = None) -> None:
+        """geometry_msgs/PoseWithCovarianceStamped carrying an orientation (position zero, covariance zero)."""
+        msg = _types()[POSE_COV_STAMPED](header=_header(stamp_ns, frame_id), pose=_pose_with_covariance(orientation))
+        self.write(topic, POSE_COV_STAMPED, msg, stamp_ns if log_ns is None else log_ns)
+
     def write_quaternion(self, topic: str, stamp_ns: int, quaternion: Sequence[float], *, frame_id: str = "",
                          log_ns: int | None = None) -> None:
         """geometry_msgs/QuaternionStamped; ``quaternion`` is (x, y, z, w)."""
@@ -184,112 +208,6 @@ class BagWriter:
         """geometry_msgs/Vector3Stamped."""
         msg = _types()[VECTOR3_STAMPED](header=_header(stamp_ns, frame_id), vector=_vector3(xyz))
         self.write(topic, VECTOR3_STAMPED, msg, stamp_ns if log_ns is None else log_ns)
-
-
-@dataclass(frozen=True)
-class SimBagOptions:
-    """How :func:`write_sim_bag` encodes a simulated run."""
-
-    velocity_topic: str = "/gnss/vel"
-    heading_topic: str = "/gnss/heading"
-    steering_topic: str = "/steering_angle"
-    velocity_type: str = "twist"  # twist | twist-cov
-    heading_type: str = "quaternion"  # quaternion | imu
-    steering_type: str = "joint-state"  # joint-state | float64
-    velocity_frame: str = "enu"  # enu | ned
-    heading_frame: str = "enu"  # enu | ned (compass heading, clockwise from north)
-    joint_name: str = "front_steering"
-    start_time: float = 1_700_000_000.0  # s, bag time of simulation time 0
-    truth: bool = True
-    compress: bool = False
-    overwrite: bool = False
-    gnss_frame_id: str = "gnss_link"
-    velocity_std: float = 0.02  # m/s, reported in TwistWithCovarianceStamped
-    heading_std: float = math.radians(0.2)  # rad, reported in Imu
-    gnss_first: bool = False  # at equal times, log GNSS before the same-instant steering sample
-
-    def __post_init__(self) -> None:
-        for name, choices in (("velocity_type", ("twist", "twist-cov")), ("heading_type", ("quaternion", "imu")),
-                              ("steering_type", ("joint-state", "float64")), ("velocity_frame", ("enu", "ned")),
-                              ("heading_frame", ("enu", "ned"))):
-            if getattr(self, name) not in choices:
-                raise ValueError(f"{name} must be one of {', '.join(choices)}, got {getattr(self, name)!r}")
-
-
-_STEER, _VEL, _HEAD, _STEER_LAST, _TRUTH = 0, 1, 2, 3, 4  # the write order at equal times
-
-
-def write_sim_bag(result: Any, path: str | Path, options: SimBagOptions | None = None) -> int:
-    """Write a ``sim.SimResult`` as an MCAP rosbag2 directory; returns the number of messages.
-
-    At equal times the steering sample is written before the GNSS velocity and heading, or after
-    them with ``gnss_first``; then the ground truth. GNSS messages carry ``result.gnss_stamp``
-    (late by the simulated GNSS delay); the truth is stamped at the motion's time.
-    """
-    opt = options or SimBagOptions()
-    start_ns = to_ns(opt.start_time)
-    gnss_ns = start_ns + np.rint(np.asarray(result.gnss_stamp) * 1e9).astype(np.int64)
-    truth_ns = start_ns + np.rint(np.asarray(result.gnss_time) * 1e9).astype(np.int64)
-    steer_ns = start_ns + np.rint(np.asarray(result.steering_time) * 1e9).astype(np.int64)
-    n_gnss, n_steer = len(gnss_ns), len(steer_ns)
-    steer_kind = _STEER_LAST if opt.gnss_first else _STEER
-    kinds = [np.full(n_steer, steer_kind), np.full(n_gnss, _VEL), np.full(n_gnss, _HEAD)]
-    times = [steer_ns, gnss_ns, gnss_ns]
-    index = [np.arange(n_steer), np.arange(n_gnss), np.arange(n_gnss)]
-    if opt.truth:
-        kinds.append(np.full(n_gnss, _TRUTH))
-        times.append(truth_ns)
-        index.append(np.arange(n_gnss))
-    kind = np.concatenate(kinds)
-    when = np.concatenate(times)
-    idx = np.concatenate(index)
-    order = np.lexsort((kind, when))
-
-    vel = np.asarray(result.velocity_enu, dtype=np.float64)
-    if opt.velocity_frame == "ned":
-        vel = vel[:, ::-1]
-    heading = np.asarray(result.heading, dtype=np.float64)
-    if opt.heading_frame == "ned":  # compass heading, clockwise from north, in [0, 2 pi)
-        heading = np.mod(math.pi / 2.0 - heading, 2.0 * math.pi)
-    vel_cov = np.zeros(36)
-    vel_cov[[0, 7, 14]] = opt.velocity_std**2
-    vel_list, heading_list = vel.tolist(), heading.tolist()
-    steer_list = np.asarray(result.steering, dtype=np.float64).tolist()
-    gnss_list, steer_ns_list, truth_list = gnss_ns.tolist(), steer_ns.tolist(), truth_ns.tolist()
-    truth = (np.column_stack([result.truth_cf, result.truth_cr]).tolist(),
-             np.column_stack([result.truth_vx, result.truth_vy, result.truth_yaw_rate]).tolist())
-
-    with BagWriter(path, compress=opt.compress, overwrite=opt.overwrite) as bag:
-        for k, i in zip(kind[order].tolist(), idx[order].tolist(), strict=True):
-            if k in (_STEER, _STEER_LAST):
-                ns = steer_ns_list[i]
-                if opt.steering_type == "float64":
-                    bag.write_float64(opt.steering_topic, ns, steer_list[i])
-                else:
-                    bag.write_joint_state(opt.steering_topic, ns, [opt.joint_name], [steer_list[i]])
-            elif k == _VEL:
-                ns = gnss_list[i]
-                linear = (vel_list[i][0], vel_list[i][1], 0.0)
-                if opt.velocity_type == "twist-cov":
-                    bag.write_twist_with_covariance(opt.velocity_topic, ns, linear, covariance=vel_cov,
-                                                    frame_id=opt.gnss_frame_id)
-                else:
-                    bag.write_twist(opt.velocity_topic, ns, linear, frame_id=opt.gnss_frame_id)
-            elif k == _HEAD:
-                ns = gnss_list[i]
-                q = yaw_quaternion(heading_list[i])
-                if opt.heading_type == "imu":
-                    bag.write_imu(opt.heading_topic, ns, q, frame_id=opt.gnss_frame_id,
-                                  orientation_variance=opt.heading_std**2)
-                else:
-                    bag.write_quaternion(opt.heading_topic, ns, q, frame_id=opt.gnss_frame_id)
-            else:
-                ns = truth_list[i]
-                cf, cr = truth[0][i]
-                vx, vy, r = truth[1][i]
-                bag.write_vector3(TRUTH_STIFFNESS_TOPIC, ns, (cf, cr, 0.0), frame_id=OUTPUT_FRAME_ID)
-                bag.write_twist(TRUTH_VELOCITY_TOPIC, ns, (vx, vy, 0.0), (0.0, 0.0, r), frame_id=OUTPUT_FRAME_ID)
-        return bag.count
 
 
 def write_output_bag(path: str | Path, epochs: EpochArrays, outputs: np.ndarray, *,

@@ -1,16 +1,21 @@
 """The `simulate` command: write a synthetic MCAP bag with the input topics and the ground truth.
 
 The scenario (``--scenario``, see :mod:`transplanter_ident.sim.scenarios`) is simulated with
-:func:`transplanter_ident.sim.simulate` and written with :func:`transplanter_ident.bag_io.write_sim_bag`:
+:func:`transplanter_ident.sim.simulate` and written with :func:`transplanter_ident.bags.write_sim_bag`:
 
-* ``/gnss/vel`` geometry_msgs/TwistStamped, ENU (``--velocity-type twist-cov``, ``--velocity-frame ned``);
-* ``/gnss/heading`` geometry_msgs/QuaternionStamped, ENU yaw (``--heading-type imu``,
+* ``/gnss/vel`` geometry_msgs/TwistStamped, ENU (``--velocity-type twist-cov|odometry``, ``--velocity-frame ned``);
+* ``/gnss/heading`` geometry_msgs/QuaternionStamped, ENU yaw (``--heading-type imu|pose-cov|odometry``,
   ``--heading-frame ned`` for a compass heading);
 * ``/steering_angle`` sensor_msgs/JointState, joint ``front_steering`` (``--steering-type float64``);
 * ``/sim/cornering_stiffness`` Vector3Stamped (x = Cf, y = Cr) and ``/sim/body_velocity``
   TwistStamped at the CG (linear.x vx, linear.y vy, angular.z r): the ground truth.
 
-Example: ``simulate -o bags/sine --scenario sine --seed 1``.
+``--driver ublox|nmea|septentrio|odometry|swiftnav`` writes a real GNSS driver's shape (types,
+topics, stamping, conventions, invalid markers; :mod:`transplanter_ident.sim.drivers`); single
+flags override it. ``--params-out P.yaml`` writes the estimator parameters that read the bag.
+
+Example: ``simulate -o bags/sine --scenario sine --seed 1``;
+``simulate -o /tmp/ublox --driver ublox --params-out /tmp/ublox.yaml``.
 """
 
 from __future__ import annotations
@@ -19,7 +24,13 @@ import argparse
 import sys
 
 from transplanter_ident.cli.util import CliError, cli_main
+from transplanter_ident.sim.drivers import DRIVERS, HEADING_TYPES, VELOCITY_TYPES
 from transplanter_ident.sim.scenarios import DEFAULT_SCENARIO, SCENARIOS
+
+#: SimBagOptions field -> the option that sets it
+ENCODING_OPTIONS = ("velocity_type", "heading_type", "steering_type", "velocity_frame", "heading_frame", "heading_lag",
+                    "heading_lag_jitter", "heading_offset", "invalid_fraction", "invalid_marker", "velocity_topic",
+                    "heading_topic", "steering_topic", "joint_name")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -52,21 +63,38 @@ def build_parser() -> argparse.ArgumentParser:
                                 "(default 0; replay with gnss.delay: S)")
     imperfect.add_argument("--gnss-first", action="store_true",
                            help="log each GNSS message before the steering sample of the same instant")
-    enc = parser.add_argument_group("message types, frames and topics")
-    enc.add_argument("--velocity-type", choices=("twist", "twist-cov"), default="twist",
-                     help="TwistStamped or TwistWithCovarianceStamped (default twist)")
-    enc.add_argument("--heading-type", choices=("quaternion", "imu"), default="quaternion",
-                     help="QuaternionStamped or sensor_msgs/Imu (default quaternion)")
-    enc.add_argument("--steering-type", choices=("joint-state", "float64"), default="joint-state",
+    enc = parser.add_argument_group("message types, frames, topics and drivers (issue #12)")
+    enc.add_argument("--driver", choices=sorted(DRIVERS),
+                     help="write a real GNSS driver's shape (the flags below override it): "
+                     + "; ".join(f"{name}: {shape.description}" for name, shape in DRIVERS.items()).replace("%", "%%"))
+    enc.add_argument("--velocity-type", choices=VELOCITY_TYPES,
+                     help="TwistStamped, TwistWithCovarianceStamped or nav_msgs/Odometry (twist in body axes) "
+                     "(default twist)")
+    enc.add_argument("--heading-type", choices=HEADING_TYPES,
+                     help="QuaternionStamped, sensor_msgs/Imu, PoseWithCovarianceStamped or nav_msgs/Odometry (on the "
+                     "velocity topic, one message carries both) (default quaternion)")
+    enc.add_argument("--steering-type", choices=("joint-state", "float64"),
                      help="sensor_msgs/JointState or std_msgs/Float64 (default joint-state)")
-    enc.add_argument("--velocity-frame", choices=("enu", "ned"), default="enu",
-                     help="linear.x/y = east/north (enu) or north/east (ned)")
-    enc.add_argument("--heading-frame", choices=("enu", "ned"), default="enu",
-                     help="ENU yaw (enu) or compass heading clockwise from north (ned)")
-    enc.add_argument("--velocity-topic", metavar="TOPIC", default="/gnss/vel")
-    enc.add_argument("--heading-topic", metavar="TOPIC", default="/gnss/heading")
-    enc.add_argument("--steering-topic", metavar="TOPIC", default="/steering_angle")
-    enc.add_argument("--joint-name", metavar="NAME", default="front_steering", help="JointState joint name")
+    enc.add_argument("--velocity-frame", choices=("enu", "ned"),
+                     help="linear.x/y = east/north (enu) or north/east (ned) (default enu)")
+    enc.add_argument("--heading-frame", choices=("enu", "ned"),
+                     help="ENU yaw (enu) or compass heading clockwise from north (ned) (default enu)")
+    enc.add_argument("--heading-lag", metavar="S", type=float,
+                     help="heading stamped S after its epoch's velocity, as on arrival (default 0)")
+    enc.add_argument("--heading-lag-jitter", metavar="S", type=float, help="+- uniform spread of the lag (default 0)")
+    enc.add_argument("--heading-offset", metavar="RAD", type=float,
+                     help="yaw of the heading source relative to the vehicle x axis (default 0)")
+    enc.add_argument("--invalid-fraction", metavar="F", type=float,
+                     help="share of GNSS epochs written with the driver's invalid marker (default 0)")
+    enc.add_argument("--invalid-marker", choices=("nan", "covariance"),
+                     help="nan: NaN velocity and orientation; covariance: zero velocity with covariance[0] = -1")
+    enc.add_argument("--velocity-topic", metavar="TOPIC", help="(default /gnss/vel)")
+    enc.add_argument("--heading-topic", metavar="TOPIC", help="(default /gnss/heading)")
+    enc.add_argument("--steering-topic", metavar="TOPIC", help="(default /steering_angle)")
+    enc.add_argument("--joint-name", metavar="NAME", help="JointState joint name (default front_steering)")
+    enc.add_argument("--params-out", metavar="P.yaml",
+                     help="write the estimator parameters that read this bag (topics, types, frames, gnss.delay, "
+                     "heading offset, lever arm); layer it over config/estimator.yaml")
     enc.add_argument("--start-time", metavar="SEC", type=float, default=1_700_000_000.0,
                      help="bag time of simulation time 0, s since the epoch (default 1700000000)")
     enc.add_argument("--no-truth", action="store_true", help="leave out the /sim/* ground truth topics")
@@ -76,41 +104,64 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _encoding(args: argparse.Namespace) -> dict[str, object]:
+    """SimBagOptions fields: the driver's shape, overridden by the single flags given."""
+    fields: dict[str, object] = dict(DRIVERS[args.driver].bag) if args.driver else {}
+    fields.update({name: getattr(args, name) for name in ENCODING_OPTIONS if getattr(args, name) is not None})
+    return fields
+
+
+def _differs(key: str, value: object) -> bool:
+    """Whether a parameter value differs from the schema default (message types compared by the type they name)."""
+    from transplanter_ident.config.schema import PARAMS
+
+    row = PARAMS[key]
+    if row.choices:
+        return row.match(str(value)) != row.match(str(row.default))
+    return value != row.default
+
+
 def _run(args: argparse.Namespace) -> int:
-    from transplanter_ident.bags import SimBagOptions, write_sim_bag
+    from transplanter_ident.bags import SimBagOptions, reading_parameters, write_sim_bag
+    from transplanter_ident.config.params_file import ParamsError
+    from transplanter_ident.config.params_writer import write_params_yaml
     from transplanter_ident.sim.scenarios import build_config
     from transplanter_ident.sim.simulator import simulate
 
+    delay = args.gnss_delay
+    if delay is None and args.driver:
+        delay = DRIVERS[args.driver].gnss_delay
     try:
         config = build_config(args.scenario, duration=args.duration, seed=args.seed, speed=args.speed,
                               tire=args.tire, friction=args.friction, gnss_rate=args.gnss_rate,
                               steering_rate=args.steering_rate, antenna_x=args.antenna_x,
                               antenna_y=args.antenna_y, steering_offset=args.steering_offset,
-                              gnss_delay=args.gnss_delay)
-        options = SimBagOptions(
-            velocity_topic=args.velocity_topic, heading_topic=args.heading_topic,
-            steering_topic=args.steering_topic, velocity_type=args.velocity_type,
-            heading_type=args.heading_type, steering_type=args.steering_type,
-            velocity_frame=args.velocity_frame, heading_frame=args.heading_frame, joint_name=args.joint_name,
-            start_time=args.start_time, truth=not args.no_truth, compress=args.compress, overwrite=args.force,
-            gnss_first=args.gnss_first,
-        )
-    except ValueError as exc:
+                              gnss_delay=delay)
+        options = SimBagOptions(start_time=args.start_time, truth=not args.no_truth, compress=args.compress,
+                                overwrite=args.force, gnss_first=args.gnss_first, seed=args.seed, **_encoding(args))
+    except (ValueError, TypeError) as exc:
         raise CliError(f"invalid option: {exc}") from exc
+    vehicle = config.vehicle
+    reading = reading_parameters(options, gnss_delay=config.gnss_delay, antenna_x=vehicle.antenna_x,
+                                 antenna_y=vehicle.antenna_y)
     result = simulate(config)
     count = write_sim_bag(result, args.output, options)
+    shape = f", {args.driver} driver shape" if args.driver else ""
     print(f"simulate: wrote {args.output}: scenario {args.scenario}, {config.duration:g} s, {count} messages "
           f"({len(result.gnss_time)} GNSS epochs at {config.gnss_rate:g} Hz, {len(result.steering_time)} "
-          f"steering samples at {config.steering_rate:g} Hz, {config.tire} tire, seed {config.seed})")
-    vehicle = config.vehicle
-    if vehicle.antenna_x or vehicle.antenna_y or args.velocity_frame != "enu" or args.heading_frame != "enu" \
-            or args.joint_name != "front_steering" or args.velocity_topic != "/gnss/vel" \
-            or args.heading_topic != "/gnss/heading" or args.steering_topic != "/steering_angle":
+          f"steering samples at {config.steering_rate:g} Hz, {config.tire} tire, seed {config.seed}{shape})")
+    if args.params_out:
+        try:
+            write_params_yaml(args.params_out, reading, f"Parameters that read {args.output} (simulate{shape}); "
+                              "layer over config/estimator.yaml")
+        except (OSError, ParamsError) as exc:
+            raise CliError(f"{args.params_out}: cannot write: {exc}") from exc
+        print(f"simulate: wrote {args.params_out}")
+    changed = {key: value for key, value in reading.items() if _differs(key, value)}
+    if changed:
         print("simulate: replay it with parameters matching the bag: "
-              f"vehicle.antenna_x {vehicle.antenna_x:g}, vehicle.antenna_y {vehicle.antenna_y:g}, "
-              f"frames {{velocity: {args.velocity_frame}, heading: {args.heading_frame}}}, "
-              f"steering.joint_name {args.joint_name}, topics {{velocity: {args.velocity_topic}, "
-              f"heading: {args.heading_topic}, steering: {args.steering_topic}}}")
+              + ", ".join(f"{key} {value:g}" if isinstance(value, float) else f"{key} {value}"
+                          for key, value in changed.items()))
     return 0
 
 

@@ -27,10 +27,15 @@ class VehicleParams:
     antenna_y: float = 0.0
     max_steering: float = 0.7
     steering_offset: float = 0.0  # rad: wheel angle = sensor - offset (initial value, or fixed)
+    heading_offset: float = 0.0  # rad: yaw of the GNSS heading source relative to the vehicle x axis
+    max_speed: float = 5.0  # m/s: a GNSS speed beyond it is rejected
+    max_lateral_speed: float = 1.0  # m/s: an epoch with |vy| at the CG beyond it is rejected
+    max_yaw_rate: float = 1.5  # rad/s: an epoch with |r| beyond it is rejected
 
     def __post_init__(self) -> None:
-        check_fields(self, "vehicle", positive=("mass", "lf", "lr", "max_steering"),
-                     finite=("iz", "antenna_x", "antenna_y", "steering_offset"))
+        check_fields(self, "vehicle", positive=("mass", "lf", "lr", "max_steering", "max_speed", "max_lateral_speed",
+                                                "max_yaw_rate"),
+                     finite=("iz", "antenna_x", "antenna_y", "steering_offset", "heading_offset"))
 
     @property
     def yaw_inertia(self) -> float:

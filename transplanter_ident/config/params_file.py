@@ -104,12 +104,15 @@ class GnssConfig:
 
     delay: float = 0.0  # s: velocity and heading stamped t describe the motion at t - delay
     pairing_tolerance: float = 0.05  # s: the most a velocity and a heading stamp of one epoch may differ
+    max_stamp_jump: float = 1.0  # s: a sample stamped further from the others is an outlier
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.delay) and -1.0 <= self.delay <= 10.0):
             raise ValueError(f"gnss.delay must be a finite number of seconds in [-1, 10], got {self.delay!r}")
         if not (math.isfinite(self.pairing_tolerance) and 0.0 < self.pairing_tolerance <= 1.0):
             raise ValueError(f"gnss.pairing_tolerance must be in (0, 1] s, got {self.pairing_tolerance!r}")
+        if not (math.isfinite(self.max_stamp_jump) and self.max_stamp_jump > 0.0):
+            raise ValueError(f"gnss.max_stamp_jump must be a positive number of seconds, got {self.max_stamp_jump!r}")
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,7 @@ This module imports no ROS and no YAML.
 from __future__ import annotations
 
 import difflib
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -112,21 +113,42 @@ SCHEMA: tuple[Param, ...] = (
     _float("vehicle.max_steering", 0.7, "rad", "steering limit; a sample beyond it is rejected", 0.001, 1.6),
     _float("vehicle.steering_offset", 0.0, "rad", "steering-sensor offset, wheel angle = sensor - offset: the "
            "initial value when estimated (ekf.estimate_steering_offset), else the fixed one", -0.3, 0.3),
+    _float("vehicle.heading_offset", 0.0, "rad", "yaw of the GNSS heading source relative to the vehicle x axis, "
+           "counter-clockwise (subtracted from the heading): e.g. +1.5708 for a dual-antenna baseline pointing to "
+           "the left; for one nav_msgs/Odometry topic serving velocity and heading it turns the twist too",
+           -math.pi, math.pi),
+    # the vehicle's physical limits: samples beyond them are rejected and counted (issue #14)
+    _float("vehicle.max_speed", 5.0, "m/s", "GNSS ground speed beyond which a velocity sample is rejected "
+           "(a rice transplanter travels below about 4 m/s on the road)", 0.1, 100.0),
+    _float("vehicle.max_lateral_speed", 1.0, "m/s", "lateral speed at the CG beyond which a GNSS epoch is "
+           "rejected", 0.01, 50.0),
+    _float("vehicle.max_yaw_rate", 1.5, "rad/s", "yaw rate (from heading increments) beyond which a GNSS epoch is "
+           "rejected", 0.01, 20.0),
     # GNSS timing
     _float("gnss.delay", 0.0, "s", "the GNSS velocity and heading stamped t describe the motion at t - delay "
            "(drivers that stamp on arrival: about their latency)", -1.0, 10.0),
     _float("gnss.pairing_tolerance", 0.05, "s", "the most the stamps of a velocity and a heading of one GNSS "
-           "epoch may differ", 0.001, 1.0),
+           "epoch may differ (the default covers a heading stamped on arrival 35-45 ms after the velocity, as "
+           "ublox does, up to 10 Hz); velocity and heading that never pair are a /diagnostics ERROR", 0.001, 1.0),
+    _float("gnss.max_stamp_jump", 1.0, "s", "a sample (any input) stamped further than this from the previous "
+           "sample of its input and from the other inputs is an outlier and rejected; after 5 consistent such "
+           "samples the input re-synchronises to the new time base by itself", 0.01, 3600.0),
     # inputs
     _str("topics.velocity", "/gnss/vel", "GNSS velocity topic"),
     _str("topics.heading", "/gnss/heading", "GNSS heading topic"),
     _str("topics.steering", "/steering_angle", "steering angle topic (rad, positive to the left)"),
-    _str("topics.velocity_type", "TwistStamped", "message type of topics.velocity",
-         ("geometry_msgs/msg/TwistStamped", "geometry_msgs/msg/TwistWithCovarianceStamped")),
-    _str("topics.heading_type", "QuaternionStamped", "message type of topics.heading (the yaw of its orientation)",
-         ("geometry_msgs/msg/QuaternionStamped", "sensor_msgs/msg/Imu")),
+    _str("topics.velocity_type", "TwistStamped", "message type of topics.velocity: a ground velocity in "
+         "frames.velocity, or nav_msgs/Odometry (its twist in the child frame: body axes at the child frame's "
+         "origin, vehicle.antenna_x/y); a negative or NaN covariance diagonal marks a sample invalid",
+         ("geometry_msgs/msg/TwistStamped", "geometry_msgs/msg/TwistWithCovarianceStamped", "nav_msgs/msg/Odometry")),
+    _str("topics.heading_type", "QuaternionStamped", "message type of topics.heading (the yaw of its orientation; "
+         "nav_msgs/Odometry on the velocity topic serves both)",
+         ("geometry_msgs/msg/QuaternionStamped", "sensor_msgs/msg/Imu", "geometry_msgs/msg/PoseWithCovarianceStamped",
+          "nav_msgs/msg/Odometry")),
     _str("topics.steering_type", "JointState", "message type of topics.steering (JointState: joint "
-         "steering.joint_name)", ("sensor_msgs/msg/JointState", "std_msgs/msg/Float64")),
+         "steering.joint_name; Float64 has no header: its time is the receive time, on the node's ROS clock online "
+         "and the log time offline, which agree to the /clock period with use_sim_time and ros2 bag play --clock)",
+         ("sensor_msgs/msg/JointState", "std_msgs/msg/Float64")),
     _str("frames.velocity", "enu", "frame of the GNSS velocity: enu (linear.x/y = east/north) or ned "
          "(north/east)", FRAMES),
     _str("frames.heading", "enu", "frame of the GNSS heading: enu (ENU yaw) or ned (compass heading, clockwise "

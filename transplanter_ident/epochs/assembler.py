@@ -1,10 +1,14 @@
 """From RTK-GNSS velocity, heading and steering to the filter's epochs (paper section 2.1, z of eq. 7).
 
 The paper obtains vy and r "by coordinate transformation" of the receiver's velocity and heading.
-Here, for each GNSS epoch t_k (velocity and heading matched by stamp):
+Here, for each GNSS epoch t_k (velocity and heading paired by stamp, :mod:`.pairing`):
 
-* heading: ENU yaw, or compass heading (clockwise from north) for ``ned``; unwrapped across +-pi;
-* velocity: ENU or NED, rotated into the body frame by the heading;
+* heading: ENU yaw, or compass heading (clockwise from north) for ``ned``, of the heading source;
+  minus ``vehicle.heading_offset`` (the source's yaw relative to the vehicle x axis, e.g. a
+  dual-antenna baseline mounted across the vehicle); unwrapped across +-pi;
+* velocity: ENU or NED, rotated into the body frame by the heading; or already in body axes at
+  the antenna (a nav_msgs/Odometry twist, :meth:`EpochAssembler.add_body_velocity`, turned by
+  ``body_velocity_rotation`` when its child frame is the heading source's);
 * yaw rate: the interval mean over [t_{k-1}, t_k] from heading increments (never a derivative);
 * timing: a GNSS sample stamped t describes the motion at t - ``gnss_delay`` (drivers that
   stamp on arrival); the epoch time and the steering interval use that time;
@@ -15,6 +19,13 @@ Here, for each GNSS epoch t_k (velocity and heading matched by stamp):
   linearly between its samples. The interval mean is DESIGN.md's input; the slope lets the
   exact model follow a ramp, which matters because at 2 m/s the lateral dynamics (time
   constant ~40 ms) are much faster than a 5 Hz GNSS interval.
+
+Bad input (DESIGN.md section 6, issue #14) is rejected with a reason and a kind (:mod:`.checks`):
+non-finite values, invalid markers, quaternions that are no orientation, stamps out of order, a
+stamp far from the others (:mod:`.stamps`: an outlier, never the new reference; a lasting time
+step re-synchronises by itself), and the vehicle's physical limits: |speed|, then per epoch |yaw
+rate| and |lateral speed| at the CG. An epoch beyond a limit is dropped and does not become the
+next epoch's start, so one bad heading costs one epoch, not two; two in a row re-anchor.
 
 An epoch is formed only once the steering stream covers its interval (a steering sample at or
 after t_k), or, at the latest, when the next GNSS epoch is matched (then it is counted as
@@ -32,6 +43,7 @@ from dataclasses import dataclass
 
 from transplanter_ident.config.params_file import EstimatorParams
 from transplanter_ident.config.schema import FRAMES
+from transplanter_ident.epochs import checks
 from transplanter_ident.epochs.epoch import Epoch, Rejection
 from transplanter_ident.epochs.frames import (
     body_velocity,
@@ -41,15 +53,19 @@ from transplanter_ident.epochs.frames import (
     unwrap_heading,
     velocity_to_enu,
 )
+from transplanter_ident.epochs.pairing import GnssPairer, PairingStats, Unpaired
+from transplanter_ident.epochs.stamps import StampGuard, Verdict
 from transplanter_ident.epochs.steering_line import interval_line
 
 #: s: stamps closer than this count as the same instant (clocks written as float seconds)
 STAMP_EPSILON = 1.0e-6
+#: consecutive epochs beyond a physical limit after which the latest sample becomes the new start
+REANCHOR_AFTER = 2
 
 
 @dataclass(frozen=True)
 class AssemblerSettings:
-    """How samples become epochs."""
+    """How samples become epochs (the limits default to none; :meth:`from_params` takes the vehicle's)."""
 
     velocity_frame: str = "enu"
     heading_frame: str = "enu"
@@ -60,14 +76,32 @@ class AssemblerSettings:
     steering_timeout: float = 0.5  # s: a newer steering sample must exist within this of t_k
     gnss_delay: float = 0.0  # s: GNSS stamped t describes the motion at t - gnss_delay
     steering_buffer: float = 10.0  # s of steering history kept (bounded memory without GNSS)
+    heading_offset: float = 0.0  # rad: yaw of the heading source relative to the vehicle x axis (subtracted)
+    body_velocity_rotation: float = 0.0  # rad: yaw of a body-frame velocity's axes relative to the vehicle x axis
+    max_stamp_jump: float = 1.0  # s: a stamp further from the others is an outlier
+    max_speed: float = math.inf  # m/s: |GNSS ground speed| limit
+    max_lateral_speed: float = math.inf  # m/s: |vy| at the CG
+    max_yaw_rate: float = math.inf  # rad/s: |interval-mean yaw rate|
 
     @classmethod
     def from_params(cls, params: EstimatorParams) -> AssemblerSettings:
-        """Frames, lever arm, steering limit and GNSS timing from the parameters (node and bags alike)."""
+        """Frames, lever arm, limits and GNSS timing from the parameters (node and bags alike).
+
+        A nav_msgs/Odometry that serves as velocity and heading on one topic reports its twist in the
+        frame whose yaw it reports, so ``vehicle.heading_offset`` turns that twist too.
+        """
         vehicle = params.config.vehicle
+        extra = params.extra
+        one_odometry = (params.topics.velocity == params.topics.heading
+                        and str(extra.get("topics.velocity_type", "")).endswith("Odometry")
+                        and str(extra.get("topics.heading_type", "")).endswith("Odometry"))
         return cls(velocity_frame=params.frames.velocity, heading_frame=params.frames.heading,
                    antenna_x=vehicle.antenna_x, antenna_y=vehicle.antenna_y, max_steering=vehicle.max_steering,
-                   match_tolerance=params.gnss.pairing_tolerance, gnss_delay=params.gnss.delay)
+                   match_tolerance=params.gnss.pairing_tolerance, gnss_delay=params.gnss.delay,
+                   heading_offset=vehicle.heading_offset,
+                   body_velocity_rotation=vehicle.heading_offset if one_odometry else 0.0,
+                   max_stamp_jump=params.gnss.max_stamp_jump, max_speed=vehicle.max_speed,
+                   max_lateral_speed=vehicle.max_lateral_speed, max_yaw_rate=vehicle.max_yaw_rate)
 
     def __post_init__(self) -> None:
         for name in ("velocity_frame", "heading_frame"):
@@ -76,10 +110,12 @@ class AssemblerSettings:
 
 
 @dataclass
-class _GnssSample:
-    east: float
-    north: float
-    yaw: float  # unwrapped
+class _Anchor:
+    """The start of the next interval: time, unwrapped yaw, CG vx."""
+
+    t: float
+    yaw: float
+    vx: float
 
 
 class EpochAssembler:
@@ -89,19 +125,26 @@ class EpochAssembler:
     and records rejected samples in :attr:`rejections` (drained by the caller). An epoch waits
     until the steering covers its interval (see the module docstring), so online (node) and
     offline (bag order) results agree whichever stream arrives first. :meth:`finish` emits
-    what still waits at the end of a recording.
+    what still waits at the end of a recording. :attr:`pairing` counts paired and unpaired
+    GNSS samples (for the diagnostics).
     """
 
     def __init__(self, settings: AssemblerSettings) -> None:
         self.settings = settings
         self.rejections: list[Rejection] = []
-        self._velocity: deque[tuple[float, float, float]] = deque(maxlen=32)
-        self._heading: deque[tuple[float, float]] = deque(maxlen=32)
+        self._pairer = GnssPairer(settings.match_tolerance)
+        self._guard = StampGuard(settings.max_stamp_jump)
         self._steering: deque[tuple[float, float]] = deque()
         self._last_steering_stamp = -math.inf
-        self._pending: deque[tuple[float, float, float, float]] = deque()  # matched GNSS (t, east, north, yaw)
+        self._pending: deque[tuple[float, float, float, float]] = deque()  # paired GNSS (t, vx_ant, vy_ant, yaw)
         self.uncovered_epochs = 0  # epochs formed before the steering covered their interval
-        self._previous: tuple[float, _GnssSample, float] | None = None  # (t, sample, vx_cg)
+        self._previous: _Anchor | None = None
+        self._beyond_limits = 0  # consecutive epochs dropped for a physical limit
+
+    @property
+    def pairing(self) -> PairingStats:
+        """Paired epochs, samples given up without a partner and the latest miss's offset."""
+        return self._pairer.stats
 
     def reset(self) -> None:
         """Forget everything (after a filter reset or a time jump)."""
@@ -112,45 +155,54 @@ class EpochAssembler:
         out, self.rejections = self.rejections, []
         return out
 
-    def add_velocity(self, stamp: float, first: float, second: float) -> list[Epoch]:
-        """A GNSS velocity sample, (east, north) or (north, east) by frame."""
-        if not all(math.isfinite(v) for v in (stamp, first, second)):
-            return self._reject("velocity", stamp, "non-finite value")
-        if self._stale_gnss(stamp):
-            return self._reject("velocity", stamp, "stamp not after the previous epoch")
-        if self._velocity and stamp <= self._velocity[-1][0]:
-            return self._reject("velocity", stamp, "stamp not after the previous velocity sample")
-        self._velocity.append((stamp, *velocity_to_enu(first, second, self.settings.velocity_frame)))
-        return self._match()
+    # ------------------------------------------------------------------ inputs
+
+    def add_velocity(self, stamp: float, first: float, second: float, variance_first: float = 0.0,
+                     variance_second: float = 0.0) -> list[Epoch]:
+        """A GNSS ground velocity, (east, north) or (north, east) by frame; variances 0 when unknown."""
+        east, north = velocity_to_enu(first, second, self.settings.velocity_frame)
+        return self._add_velocity(stamp, ("enu", east, north), (first, second), (variance_first, variance_second))
+
+    def add_body_velocity(self, stamp: float, vx: float, vy: float, variance_x: float = 0.0,
+                          variance_y: float = 0.0) -> list[Epoch]:
+        """A velocity already in body axes at the antenna (x forward, y left), e.g. a nav_msgs/Odometry twist."""
+        return self._add_velocity(stamp, ("body", vx, vy), (vx, vy), (variance_x, variance_y))
 
     def add_heading(self, stamp: float, heading: float) -> list[Epoch]:
-        """A GNSS heading sample (ENU yaw, or compass heading for ``ned``), rad."""
+        """A GNSS heading sample (ENU yaw, or compass heading for ``ned``) of the heading source, rad."""
         if not (math.isfinite(stamp) and math.isfinite(heading)):
-            return self._reject("heading", stamp, "non-finite value")
+            return self._reject("heading", stamp, "non-finite value", checks.NON_FINITE)
+        motion_time = stamp - self.settings.gnss_delay
+        if not self._stamp_ok("heading", stamp, motion_time):
+            return []
+        newest = self._pairer.newest("heading")
         if self._stale_gnss(stamp):
-            return self._reject("heading", stamp, "stamp not after the previous epoch")
-        if self._heading and stamp <= self._heading[-1][0]:
-            return self._reject("heading", stamp, "stamp not after the previous heading sample")
-        self._heading.append((stamp, heading_to_enu_yaw(heading, self.settings.heading_frame)))
-        return self._match()
+            return self._reject("heading", stamp, "stamp not after the previous epoch", checks.STAMP_ORDER)
+        if newest is not None and stamp <= newest:
+            return self._reject("heading", stamp, "stamp not after the previous heading sample", checks.STAMP_ORDER)
+        self._guard.accept("heading", motion_time)
+        yaw = heading_to_enu_yaw(heading, self.settings.heading_frame) - self.settings.heading_offset
+        return self._pair("heading", stamp, yaw)
 
     def add_heading_quaternion(self, stamp: float, x: float, y: float, z: float, w: float) -> list[Epoch]:
-        """A GNSS heading given as an orientation quaternion (QuaternionStamped, Imu)."""
-        if not all(math.isfinite(c) for c in (x, y, z, w)):
-            return self._reject("heading", stamp, f"non-finite orientation quaternion {(x, y, z, w)}")
-        if x * x + y * y + z * z + w * w < 1e-12:
-            return self._reject("heading", stamp, "orientation quaternion of zero norm")
+        """A GNSS heading given as an orientation quaternion (QuaternionStamped, Imu, Pose, Odometry)."""
+        problem = checks.quaternion_problem(x, y, z, w)
+        if problem is not None:
+            return self._reject("heading", stamp, problem[1], problem[0])
         return self.add_heading(stamp, quaternion_yaw(x, y, z, w))
 
     def add_steering(self, stamp: float, angle: float) -> list[Epoch]:
         """A front steering angle sample, rad, positive to the left."""
         if not (math.isfinite(stamp) and math.isfinite(angle)):
-            return self._reject("steering", stamp, "non-finite value")
+            return self._reject("steering", stamp, "non-finite value", checks.NON_FINITE)
         if abs(angle) > self.settings.max_steering:
-            return self._reject("steering", stamp,
-                                f"|{angle:.3f}| rad beyond max_steering {self.settings.max_steering:.3f}")
+            return self._reject("steering", stamp, f"|{angle:.3f}| rad beyond max_steering "
+                                f"{self.settings.max_steering:.3f}", checks.STEERING_LIMIT)
+        if not self._stamp_ok("steering", stamp, stamp):
+            return []
         if stamp <= self._last_steering_stamp:
-            return self._reject("steering", stamp, "stamp not after the previous steering sample")
+            return self._reject("steering", stamp, "stamp not after the previous steering sample", checks.STAMP_ORDER)
+        self._guard.accept("steering", stamp)
         self._last_steering_stamp = stamp
         self._steering.append((stamp, angle))
         while len(self._steering) > 2 and self._steering[0][0] < stamp - self.settings.steering_buffer:
@@ -161,26 +213,86 @@ class EpochAssembler:
         """Emit the epochs still waiting for steering (end of a recording)."""
         return self._flush(force=True)
 
-    def _reject(self, topic: str, stamp: float, reason: str) -> list[Epoch]:
-        self.rejections.append(Rejection(topic, stamp, reason))
+    # ------------------------------------------------------------------ checks
+
+    def _add_velocity(self, stamp: float, payload: tuple[str, float, float], raw: tuple[float, float],
+                      variances: tuple[float, float]) -> list[Epoch]:
+        if not all(math.isfinite(v) for v in (stamp, *raw)):
+            return self._reject("velocity", stamp, "non-finite value", checks.NON_FINITE)
+        marker = checks.covariance_problem(*variances)
+        if marker is not None:
+            return self._reject("velocity", stamp, marker, checks.INVALID_MARKER)
+        speed = math.hypot(*raw)
+        if speed > self.settings.max_speed:
+            return self._reject("velocity", stamp, f"speed {speed:.3g} m/s beyond vehicle.max_speed "
+                                f"{self.settings.max_speed:g}", checks.SPEED_LIMIT)
+        motion_time = stamp - self.settings.gnss_delay
+        if not self._stamp_ok("velocity", stamp, motion_time):
+            return []
+        newest = self._pairer.newest("velocity")
+        if self._stale_gnss(stamp):
+            return self._reject("velocity", stamp, "stamp not after the previous epoch", checks.STAMP_ORDER)
+        if newest is not None and stamp <= newest:
+            return self._reject("velocity", stamp, "stamp not after the previous velocity sample",
+                                checks.STAMP_ORDER)
+        self._guard.accept("velocity", motion_time)
+        return self._pair("velocity", stamp, payload)
+
+    def _stamp_ok(self, stream: str, stamp: float, motion_time: float) -> bool:
+        """False (and a rejection) for an outlier stamp; after a time step, the stream's state restarts."""
+        verdict, reason = self._guard.check(stream, motion_time)
+        if verdict is Verdict.OUTLIER:
+            self._reject(stream, stamp, reason, checks.STAMP_JUMP)
+            return False
+        if verdict is Verdict.RESYNC:
+            self._reject(stream, stamp, reason, checks.RESYNC)
+            self._restart_stream(stream)
+        return True
+
+    def _restart_stream(self, stream: str) -> None:
+        """A stream's time base stepped: drop what belongs to the old one."""
+        if stream == "steering":
+            self._steering.clear()
+            self._last_steering_stamp = -math.inf
+            return
+        self._pairer.clear(stream)
+        for t, *_ in self._pending:
+            self.rejections.append(Rejection("epoch", t, "dropped: the GNSS time base stepped", checks.RESYNC))
+        self._pending.clear()
+        self._previous = None
+
+    def _reject(self, topic: str, stamp: float, reason: str, kind: str = checks.OTHER) -> list[Epoch]:
+        self.rejections.append(Rejection(topic, stamp, reason, kind))
         return []
 
     def _stale_gnss(self, stamp: float) -> bool:
-        latest = self._pending[-1][0] if self._pending else (self._previous[0] if self._previous else None)
+        latest = self._pending[-1][0] if self._pending else (self._previous.t if self._previous else None)
         return latest is not None and stamp - self.settings.gnss_delay <= latest
 
-    def _match(self) -> list[Epoch]:
-        tol = self.settings.match_tolerance
-        for vi, (tv, east, north) in enumerate(self._velocity):
-            for hi, (th, yaw) in enumerate(self._heading):
-                if abs(tv - th) <= tol:
-                    for _ in range(vi + 1):
-                        self._velocity.popleft()
-                    for _ in range(hi + 1):
-                        self._heading.popleft()
-                    self._pending.append((tv - self.settings.gnss_delay, east, north, yaw))
-                    return self._flush(force=False)
-        return []
+    # ------------------------------------------------------------------ pairing and epochs
+
+    def _pair(self, role: str, stamp: float, payload: object) -> list[Epoch]:
+        pairs, given_up = self._pairer.add(role, stamp, payload)
+        for sample in given_up:
+            self._reject_unpaired(sample)
+        for tv, (frame, a, b), yaw in pairs:
+            if frame == "enu":
+                vx_ant, vy_ant = body_velocity(a, b, yaw)
+            else:
+                vx_ant, vy_ant = body_velocity(a, b, -self.settings.body_velocity_rotation)
+            self._pending.append((tv - self.settings.gnss_delay, vx_ant, vy_ant, yaw))
+        return self._flush(force=False) if pairs else []
+
+    def _reject_unpaired(self, sample: Unpaired) -> None:
+        other = "heading" if sample.role == "velocity" else "velocity"
+        tolerance = self.settings.match_tolerance
+        if sample.offset is None:
+            nearest = f"no {other} sample yet"
+        else:
+            gap = sample.offset if sample.role == "velocity" else -sample.offset
+            nearest = f"the nearest {other} stamp is {1e3 * abs(gap):.0f} ms {'later' if gap > 0 else 'earlier'}"
+        self._reject(sample.role, sample.stamp, f"no {other} within gnss.pairing_tolerance {1e3 * tolerance:g} ms "
+                     f"({nearest})", checks.UNPAIRED)
 
     def _flush(self, *, force: bool) -> list[Epoch]:
         """Form the waiting epochs whose interval the steering covers (all of them if ``force``).
@@ -200,28 +312,45 @@ class EpochAssembler:
                 epochs.append(epoch)
         return epochs
 
-    def _gnss_epoch(self, t: float, east: float, north: float, yaw: float) -> Epoch | None:
+    def _gnss_epoch(self, t: float, vx_ant: float, vy_ant: float, yaw: float) -> Epoch | None:
         previous = self._previous
+        settings = self.settings
         if previous is None:
-            sample = _GnssSample(east, north, yaw)
-            vx_ant, vy_ant = body_velocity(east, north, yaw)
-            self._previous = (t, sample, vx_ant)
+            self._previous = _Anchor(t, yaw, vx_ant)
             return None
-        t0, before, vx_before = previous
-        unwrapped = unwrap_heading(before.yaw, yaw)
-        sample = _GnssSample(east, north, unwrapped)
-        dt = t - t0
-        yaw_rate = (unwrapped - before.yaw) / dt
-        vx_ant, vy_ant = body_velocity(east, north, unwrapped)
-        vx, vy = remove_lever_arm(vx_ant, vy_ant, yaw_rate, self.settings.antenna_x, self.settings.antenna_y)
-        self._previous = (t, sample, vx)
-        steering = self._steering_line(t0, t)
+        unwrapped = unwrap_heading(previous.yaw, yaw)
+        dt = t - previous.t
+        yaw_rate = (unwrapped - previous.yaw) / dt
+        vx, vy = remove_lever_arm(vx_ant, vy_ant, yaw_rate, settings.antenna_x, settings.antenna_y)
+        limit = self._limit_problem(yaw_rate, vy)
+        if limit is not None:
+            self._beyond_limits += 1
+            if self._beyond_limits >= REANCHOR_AFTER:  # the start itself may be the bad sample
+                self._previous = _Anchor(t, yaw, vx)
+                self._beyond_limits = 0
+            topic, reason, kind = limit
+            self.rejections.append(Rejection(topic, t, reason, kind))
+            return None
+        self._beyond_limits = 0
+        self._previous = _Anchor(t, unwrapped, vx)
+        steering = self._steering_line(previous.t, t)
         if steering is None:
-            self.rejections.append(Rejection("epoch", t, "no recent steering angle"))
+            self.rejections.append(Rejection("epoch", t, "no recent steering angle", checks.NO_STEERING))
             return None
         return Epoch(t=t, longitudinal_velocity=vx, lateral_velocity=vy, heading=unwrapped,
                      yaw_rate=yaw_rate, steering=steering[0], steering_rate=steering[1],
-                     speed=0.5 * (vx_before + vx), antenna_lateral_velocity=vy_ant)
+                     speed=0.5 * (previous.vx + vx), antenna_lateral_velocity=vy_ant)
+
+    def _limit_problem(self, yaw_rate: float, vy: float) -> tuple[str, str, str] | None:
+        """(topic, reason, kind) when the epoch is beyond the vehicle's yaw-rate or lateral-speed limit."""
+        settings = self.settings
+        if abs(yaw_rate) > settings.max_yaw_rate:
+            return ("heading", f"yaw rate {yaw_rate:+.3g} rad/s beyond vehicle.max_yaw_rate {settings.max_yaw_rate:g}",
+                    checks.YAW_RATE_LIMIT)
+        if abs(vy) > settings.max_lateral_speed:
+            return ("velocity", f"lateral speed {vy:+.3g} m/s beyond vehicle.max_lateral_speed "
+                    f"{settings.max_lateral_speed:g}", checks.LATERAL_SPEED_LIMIT)
+        return None
 
     def _steering_line(self, start: float, end: float) -> tuple[float, float] | None:
         samples = self._steering
@@ -233,14 +362,19 @@ class EpochAssembler:
         return interval_line(times, values, start, end)
 
 
-def assemble(assembler: EpochAssembler, samples: Iterable[tuple[str, float, tuple[float, ...]]]) -> list[Epoch]:
-    """Feed (topic, stamp, values) samples in order; return the epochs (offline use).
+#: sample names of :func:`assemble` -> the assembler method that takes them
+INPUTS = {"velocity": "add_velocity", "velocity_body": "add_body_velocity", "heading": "add_heading",
+          "heading_quaternion": "add_heading_quaternion", "steering": "add_steering"}
 
-    topic: velocity (v1, v2), heading (yaw,) or steering (angle,).
+
+def assemble(assembler: EpochAssembler, samples: Iterable[tuple[str, float, tuple[float, ...]]]) -> list[Epoch]:
+    """Feed (input, stamp, values) samples in order; return the epochs (offline use).
+
+    input: ``velocity`` (v1, v2[, variance1, variance2]) in frames.velocity, ``velocity_body`` (vx, vy[,
+    variances]) in body axes, ``heading`` (yaw,), ``heading_quaternion`` (x, y, z, w) or ``steering`` (angle,).
     """
-    adders = {"velocity": assembler.add_velocity, "heading": assembler.add_heading,
-              "steering": assembler.add_steering}
+    adders = {name: getattr(assembler, method) for name, method in INPUTS.items()}
     epochs: list[Epoch] = []
-    for topic, stamp, values in samples:
-        epochs.extend(adders[topic](stamp, *values))
+    for name, stamp, values in samples:
+        epochs.extend(adders[name](stamp, *values))
     return epochs

@@ -52,8 +52,14 @@ class EpochArrays:
 
 @dataclass(frozen=True)
 class Rejection:
-    """A sample that was not used, and why (DESIGN.md section 6)."""
+    """A sample that was not used, and why (DESIGN.md section 6).
+
+    ``kind`` is the class of the reason (:mod:`.checks`: ``stamp_jump``, ``speed_limit``, ...): the
+    diagnostics count rejections per kind, and a log throttle keyed by it stays bounded whatever
+    numbers the reason text carries.
+    """
 
     topic: str  # "velocity" | "heading" | "steering" | "epoch"
     stamp: float
     reason: str
+    kind: str = "other"

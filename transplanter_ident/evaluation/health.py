@@ -21,6 +21,8 @@ from transplanter_ident.config.parameters import check_fields
 from transplanter_ident.ekf.joint_ekf import Estimate
 from transplanter_ident.ekf.layout import StepStatus
 from transplanter_ident.epochs.epoch import Epoch, Rejection
+from transplanter_ident.epochs.pairing import PairingStats
+from transplanter_ident.evaluation.input_health import PairingMonitor, kind_values
 from transplanter_ident.evaluation.validity import Decision, Identifiability
 from transplanter_ident.evaluation.windows import LatencyStats, RollingRms, TimeWindow
 
@@ -88,6 +90,7 @@ class InputMonitor:
         self.last_arrival: float | None = None
         self.rejected = 0
         self.last_rejection = ""
+        self.kinds: Counter = Counter()  # rejections per kind (epochs.checks)
         self._arrivals = TimeWindow(thresholds.rate_window)
         self._rejections = TimeWindow(thresholds.window)
 
@@ -100,9 +103,10 @@ class InputMonitor:
         self.last_arrival = now
         self._arrivals.add(now)
 
-    def reject(self, now: float, reason: str) -> None:
+    def reject(self, now: float, reason: str, kind: str = "other") -> None:
         self.rejected += 1
         self.last_rejection = reason
+        self.kinds[kind] += 1
         self._rejections.add(now)
 
     def rate(self, now: float) -> float:
@@ -129,6 +133,7 @@ class _FilterState:
     updates: int = 0
     epoch_rejected: int = 0
     last_epoch_rejection: str = ""
+    epoch_kinds: Counter = field(default_factory=Counter)
     unpublished: int = 0  # outputs withheld because a value was not finite
     validity: Decision = field(default_factory=lambda: Decision(False, ("no estimate yet",), False))
 
@@ -149,6 +154,7 @@ class HealthMonitor:
         self._yaw_rate_rms = RollingRms(thresholds.window)
         self._events = {key: TimeWindow(thresholds.window) for key in ("gated", "rejected", "diverged", "epoch")}
         self._persistence = "off"
+        self.pairing = PairingMonitor(thresholds.window)
 
     def set_thresholds(self, thresholds: HealthThresholds) -> None:
         """New thresholds at run time; the windows keep their samples."""
@@ -158,6 +164,7 @@ class HealthMonitor:
         self._steering_rms.span = self._yaw_rate_rms.span = thresholds.window
         for window in self._events.values():
             window.span = thresholds.window
+        self.pairing.set_window(thresholds.window)
 
     def reset_filter(self) -> None:
         """Forget the filter's history (after a reset); input statistics carry on."""
@@ -176,10 +183,11 @@ class HealthMonitor:
     def on_rejection(self, rejection: Rejection, now: float) -> None:
         """A sample (or an epoch) the assembler, or the node's conversion, did not use."""
         if rejection.topic in self.inputs:
-            self.inputs[rejection.topic].reject(now, rejection.reason)
+            self.inputs[rejection.topic].reject(now, rejection.reason, rejection.kind)
         else:
             self._filter.epoch_rejected += 1
             self._filter.last_epoch_rejection = rejection.reason
+            self._filter.epoch_kinds[rejection.kind] += 1
             self._events["epoch"].add(now)
 
     def on_estimate(self, epoch: Epoch, estimate: Estimate, now: float) -> None:
@@ -227,6 +235,9 @@ class HealthMonitor:
         level = ERROR if decision.hard else WARN
         return HealthReport(name, level, "not valid: " + ("; ".join(decision.reasons) or "waiting (hysteresis)"),
                             values)
+    def on_pairing(self, stats: PairingStats, now: float) -> None:
+        """The assembler's running counts of paired and unpaired GNSS samples."""
+        self.pairing.update(stats, now)
 
     def on_unpublished(self) -> None:
         """An output was withheld because it was not finite."""
@@ -238,11 +249,11 @@ class HealthMonitor:
     # ------------------------------------------------------------------ levels
 
     def report(self, now: float) -> list[HealthReport]:
-        """The current status lines: one per input, then motion, measurements, convergence, excitation, latency."""
+        """The current status lines: one per input, GNSS pairing, motion, measurements, convergence, excitation, latency."""
         reports = [self._input_report(self.inputs[name], now) for name in INPUTS]
+        reports.append(HealthReport(f"{self.name}: GNSS pairing", *self.pairing.report(now)))
         reports += [self._motion_report(), self._measurement_report(now), self._validity_report(),
-                    self._persistence_report(),
-                    self._convergence_report(),
+                    self._persistence_report(), self._convergence_report(),
                     self._excitation_report(), self._latency_report()]
         return reports
 
@@ -255,7 +266,7 @@ class HealthMonitor:
         values = (("topic", topic), ("rate_hz", f"{rate:.2f}"), ("messages", str(monitor.messages)),
                   ("age_s", f"{age:.3f}" if monitor.last_arrival is not None else "never"),
                   ("rejected", str(monitor.rejected)), ("rejected_recent", str(recent)),
-                  ("last_rejection", monitor.last_rejection))
+                  ("last_rejection", monitor.last_rejection)) + kind_values(monitor.kinds)
         name = f"{self.name}: {monitor.name} input"
         if age > th.stale_timeout:
             if monitor.last_arrival is None:
@@ -299,7 +310,7 @@ class HealthMonitor:
         values += (("gated_recent", str(counts["gated"])), ("rejected_recent", str(counts["rejected"])),
                    ("diverged_recent", str(counts["diverged"])), ("epochs_dropped", str(f.epoch_rejected)),
                    ("epochs_dropped_recent", str(counts["epoch"])), ("last_epoch_drop", f.last_epoch_rejection),
-                   ("outputs_withheld", str(f.unpublished)))
+                   ("outputs_withheld", str(f.unpublished))) + kind_values(f.epoch_kinds)
         name = f"{self.name}: measurements"
         window = f"in the last {th.window:g} s"
         if counts["diverged"]:

@@ -1,9 +1,14 @@
 """Message adapters of the `estimator` node: input message types, field extraction, output and diagnostics messages.
 
 The tables map each input message type the schema allows (``topics.*_type``, config/schema.py) to
-its rclpy class and to the function that reads the wanted field; the rest converts between ROS
-messages and the plain values of the numerics (stamps in float seconds, outputs of an epoch,
-:class:`~transplanter_ident.evaluation.health.HealthReport` lines). No node, no callbacks here.
+its rclpy class and to the function that feeds one message's fields to the
+:class:`~transplanter_ident.epochs.assembler.EpochAssembler`, exactly as the bag reader does
+(:mod:`transplanter_ident.bags.messages`): a TwistWithCovarianceStamped or Odometry velocity with its
+covariance diagonal (the drivers' invalid markers), an Odometry twist as a body-frame velocity, every
+orientation as a quaternion (the assembler checks its norm), a JointState through the shared
+duplicate-name check. The rest converts between ROS messages and the plain values of the numerics
+(stamps in float seconds, outputs of an epoch, :class:`~transplanter_ident.evaluation.health.HealthReport`
+lines). No node, no callbacks here.
 """
 
 from __future__ import annotations
@@ -14,24 +19,64 @@ from typing import Any
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import QuaternionStamped, TwistStamped, TwistWithCovarianceStamped, Vector3Stamped
+from geometry_msgs.msg import (
+    PoseWithCovarianceStamped,
+    QuaternionStamped,
+    TwistStamped,
+    TwistWithCovarianceStamped,
+    Vector3Stamped,
+)
+from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Bool, Float64
 
 from transplanter_ident.ekf.joint_ekf import Estimate
+from transplanter_ident.epochs.assembler import EpochAssembler
+from transplanter_ident.epochs.checks import joint_angle
 from transplanter_ident.epochs.epoch import Epoch
 from transplanter_ident.epochs.frames import stamp_seconds
 from transplanter_ident.evaluation.health import HealthReport
 
-#: topics.velocity_type -> (class, message -> geometry_msgs/Vector3 of the velocity)
-VELOCITY_TYPES: dict[str, tuple[type, Callable[[Any], Any]]] = {
-    "geometry_msgs/msg/TwistStamped": (TwistStamped, lambda msg: msg.twist.linear),
-    "geometry_msgs/msg/TwistWithCovarianceStamped": (TwistWithCovarianceStamped, lambda msg: msg.twist.twist.linear),
+#: (assembler, stamp s, message) -> the epochs the sample completes
+Feeder = Callable[[EpochAssembler, float, Any], list[Epoch]]
+
+
+def _twist(assembler: EpochAssembler, stamp: float, msg: TwistStamped) -> list[Epoch]:
+    v = msg.twist.linear
+    return assembler.add_velocity(stamp, v.x, v.y)
+
+
+def _twist_cov(assembler: EpochAssembler, stamp: float, msg: Any) -> list[Epoch]:
+    v, c = msg.twist.twist.linear, msg.twist.covariance
+    return assembler.add_velocity(stamp, v.x, v.y, float(c[0]), float(c[7]))
+
+
+def _odometry_twist(assembler: EpochAssembler, stamp: float, msg: Odometry) -> list[Epoch]:
+    v, c = msg.twist.twist.linear, msg.twist.covariance
+    return assembler.add_body_velocity(stamp, v.x, v.y, float(c[0]), float(c[7]))
+
+
+def _orientation(field: Callable[[Any], Any]) -> Feeder:
+    def feed(assembler: EpochAssembler, stamp: float, msg: Any) -> list[Epoch]:
+        q = field(msg)
+        return assembler.add_heading_quaternion(stamp, q.x, q.y, q.z, q.w)
+
+    return feed
+
+
+#: topics.velocity_type -> (class, feeder)
+VELOCITY_TYPES: dict[str, tuple[type, Feeder]] = {
+    "geometry_msgs/msg/TwistStamped": (TwistStamped, _twist),
+    "geometry_msgs/msg/TwistWithCovarianceStamped": (TwistWithCovarianceStamped, _twist_cov),
+    "nav_msgs/msg/Odometry": (Odometry, _odometry_twist),
 }
-#: topics.heading_type -> (class, message -> geometry_msgs/Quaternion of the orientation)
-HEADING_TYPES: dict[str, tuple[type, Callable[[Any], Any]]] = {
-    "geometry_msgs/msg/QuaternionStamped": (QuaternionStamped, lambda msg: msg.quaternion),
-    "sensor_msgs/msg/Imu": (Imu, lambda msg: msg.orientation),
+#: topics.heading_type -> (class, feeder of the orientation)
+HEADING_TYPES: dict[str, tuple[type, Feeder]] = {
+    "geometry_msgs/msg/QuaternionStamped": (QuaternionStamped, _orientation(lambda msg: msg.quaternion)),
+    "sensor_msgs/msg/Imu": (Imu, _orientation(lambda msg: msg.orientation)),
+    "geometry_msgs/msg/PoseWithCovarianceStamped": (PoseWithCovarianceStamped,
+                                                    _orientation(lambda msg: msg.pose.pose.orientation)),
+    "nav_msgs/msg/Odometry": (Odometry, _orientation(lambda msg: msg.pose.pose.orientation)),
 }
 #: topics.steering_type -> class (a JointState carries a stamp and joints, a Float64 only the angle)
 STEERING_TYPES: dict[str, type] = {"sensor_msgs/msg/JointState": JointState, "std_msgs/msg/Float64": Float64}
@@ -58,12 +103,9 @@ def header_seconds(header: Any) -> float | None:
     return stamp_seconds(header.stamp.sec, header.stamp.nanosec)
 
 
-def joint_position(msg: JointState, joint: str) -> float | None:
-    """The position of ``joint`` in a JointState, or None when the joint or its position is missing."""
-    try:
-        return msg.position[msg.name.index(joint)]
-    except (ValueError, IndexError):
-        return None
+def joint_position(msg: JointState, joint: str) -> tuple[float | None, str, str]:
+    """(position of ``joint``, "", "") or (None, kind, reason): missing joint or position, duplicate names."""
+    return joint_angle(msg.name, msg.position, joint)
 
 
 def output_values(epoch: Epoch, est: Estimate) -> tuple[float, ...]:

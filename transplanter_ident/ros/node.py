@@ -8,9 +8,11 @@ Message types and field extraction are in :mod:`.adapters`, parameters (schema, 
 validation) in :mod:`.parameters`, the command line and the executor in :mod:`.main`.
 
 Subscriptions (qos_profile_sensor_data; names and types are parameters):
-    topics.velocity  geometry_msgs/TwistStamped | TwistWithCovarianceStamped   (topics.velocity_type)
-    topics.heading   geometry_msgs/QuaternionStamped | sensor_msgs/Imu          (topics.heading_type)
-    topics.steering  sensor_msgs/JointState (joint steering.joint_name) | std_msgs/Float64 (topics.steering_type)
+    topics.velocity  geometry_msgs/TwistStamped | TwistWithCovarianceStamped | nav_msgs/Odometry (topics.velocity_type)
+    topics.heading   geometry_msgs/QuaternionStamped | sensor_msgs/Imu | PoseWithCovarianceStamped | nav_msgs/Odometry
+                     (topics.heading_type; one Odometry topic may serve velocity and heading: one subscription)
+    topics.steering  sensor_msgs/JointState (joint steering.joint_name) | std_msgs/Float64 (topics.steering_type;
+                     no header: stamped with the node's ROS clock on receipt, as a bag's log time offline)
 Publications, once per processed epoch, stamped with the epoch's time and framed ``output.frame_id``:
     ~/cornering_stiffness      geometry_msgs/Vector3Stamped  x = Cf, y = Cr (N/rad per tire)
     ~/cornering_stiffness_std  geometry_msgs/Vector3Stamped  1-sigma of Cf, Cr; z = their states' correlation
@@ -138,16 +140,17 @@ class EstimatorNode(Node):
 
     def _create_subscriptions(self) -> list[tuple[str, str, str]]:
         types = self._settings.message_types
-        velocity_type, self._velocity_of = adapters.VELOCITY_TYPES[types["velocity"]]
-        heading_type, self._orientation_of = adapters.HEADING_TYPES[types["heading"]]
+        velocity_type, self._feed_velocity = adapters.VELOCITY_TYPES[types["velocity"]]
+        heading_type, self._feed_heading = adapters.HEADING_TYPES[types["heading"]]
         steering_type = adapters.STEERING_TYPES[types["steering"]]
         steering_callback = self._on_joint_state if steering_type is JointState else self._on_steering_float
+        gnss = [("velocity", velocity_type, self._on_velocity), ("heading", heading_type, self._on_heading)]
+        if self._topics["velocity"] == self._topics["heading"]:  # one nav_msgs/Odometry topic (validated)
+            gnss = [("velocity", velocity_type, self._on_velocity_and_heading)]
         inputs = []
         # Steering first: the default executor serves waiting subscriptions in creation order (the EventsExecutor
         # in arrival order), and the steering sample at t_k belongs to the interval that the GNSS epoch t_k closes.
-        for role, msg_type, callback in (("steering", steering_type, steering_callback),
-                                         ("velocity", velocity_type, self._on_velocity),
-                                         ("heading", heading_type, self._on_heading)):
+        for role, msg_type, callback in (("steering", steering_type, steering_callback), *gnss):
             # best effort + volatile accept every publisher's QoS; a publisher of another type is found in the graph
             events = SubscriptionEventCallbacks(use_default_callbacks=False)
             subscription = self.create_subscription(msg_type, self._topics[role], callback, qos_profile_sensor_data,
@@ -163,21 +166,28 @@ class EstimatorNode(Node):
     def _on_velocity(self, msg: Any) -> None:
         arrival = time.perf_counter()
         self._health.on_message("velocity", time.monotonic())
-        v = self._velocity_of(msg)
-        self._process(self._assembler.add_velocity(self._stamp(msg.header), v.x, v.y), arrival)
+        self._process(self._feed_velocity(self._assembler, self._stamp(msg.header), msg), arrival)
 
     def _on_heading(self, msg: Any) -> None:
         arrival = time.perf_counter()
         self._health.on_message("heading", time.monotonic())
-        q = self._orientation_of(msg)
-        self._process(self._assembler.add_heading_quaternion(self._stamp(msg.header), q.x, q.y, q.z, q.w), arrival)
+        self._process(self._feed_heading(self._assembler, self._stamp(msg.header), msg), arrival)
+
+    def _on_velocity_and_heading(self, msg: Any) -> None:
+        """One nav_msgs/Odometry: its twist is the velocity, its orientation the heading of the same epoch."""
+        arrival, now = time.perf_counter(), time.monotonic()
+        self._health.on_message("velocity", now)
+        self._health.on_message("heading", now)
+        stamp = self._stamp(msg.header)
+        epochs = self._feed_velocity(self._assembler, stamp, msg)
+        self._process(epochs + self._feed_heading(self._assembler, stamp, msg), arrival)
 
     def _on_joint_state(self, msg: JointState) -> None:
         self._health.on_message("steering", time.monotonic())
         stamp = self._stamp(msg.header)
-        angle = adapters.joint_position(msg, self._joint)
+        angle, kind, reason = adapters.joint_position(msg, self._joint)
         if angle is None:
-            self._reject(Rejection("steering", stamp, f"joint '{self._joint}' has no position in the JointState"))
+            self._reject(Rejection("steering", stamp, reason, kind))
             return
         self._process(self._assembler.add_steering(stamp, angle), None)
 
@@ -195,7 +205,7 @@ class EstimatorNode(Node):
             for info in self.get_publishers_info_by_topic(topic):
                 if info.topic_type != expected:
                     self._reject(Rejection(role, self._now(), f"a publisher on {topic} sends {info.topic_type}, "
-                                           f"not topics.{role}_type {expected}"))
+                                           f"not topics.{role}_type {expected}", "wrong_type"))
                     break
 
     def _stamp(self, header: Any) -> float:
@@ -213,6 +223,7 @@ class EstimatorNode(Node):
         """Filter and publish the completed epochs; ``arrival``: perf_counter at the GNSS callback's entry."""
         for rejection in self._assembler.drain_rejections():
             self._reject(rejection)
+        self._health.on_pairing(self._assembler.pairing, time.monotonic())
         for epoch in epochs:
             estimate = self._ekf.step(epoch)
             decision = self._validity.step(sample_of(epoch, estimate.row))
@@ -244,7 +255,8 @@ class EstimatorNode(Node):
     def _reject(self, rejection: Rejection) -> None:
         self._health.on_rejection(rejection, time.monotonic())
         topic = self._topics.get(rejection.topic, "GNSS epoch")
-        self._warn((rejection.topic, rejection.reason),
+        key = rejection.reason if rejection.kind == "other" else rejection.kind  # bounded: kinds, not texts
+        self._warn((rejection.topic, key),
                    f"{rejection.topic} ({topic}) sample at t={rejection.stamp:.3f} rejected: {rejection.reason}")
 
     def _warn(self, key: object, text: str) -> None:

@@ -32,6 +32,7 @@ from transplanter_ident.config.schema import PARAMS, SCHEMA, default_values, is_
 from transplanter_ident.evaluation.health import HealthThresholds
 
 ROLES = ("velocity", "heading", "steering")
+ODOMETRY = "nav_msgs/msg/Odometry"
 
 
 def ros_value(value: Any) -> Any:
@@ -116,11 +117,16 @@ def validate(flat: Mapping[str, Any]) -> NodeSettings:
     """Check a set of parameter values (missing keys: defaults); raises ParamsError naming the key and the reason."""
     params = flat_to_params(flat)
     values = {**default_values(), **params_to_flat(params)}
+    message_types = {role: str(PARAMS[f"topics.{role}_type"].match(values[f"topics.{role}_type"])) for role in ROLES}
+    if params.topics.velocity == params.topics.heading and not (
+            message_types["velocity"] == message_types["heading"] == ODOMETRY):
+        raise ParamsError(f"topics.velocity and topics.heading are both {params.topics.velocity}: only one "
+                          "nav_msgs/Odometry topic can serve both (set topics.velocity_type and topics.heading_type "
+                          "to Odometry, or name two topics)", "topics.heading")
     return NodeSettings(
         params=params,
         thresholds=health_thresholds(values),
-        message_types={role: str(PARAMS[f"topics.{role}_type"].match(values[f"topics.{role}_type"]))
-                       for role in ROLES},
+        message_types=message_types,
         diagnostics_period=float(values["diagnostics.period"]),
         latency_log=str(values["diagnostics.latency_log"]),
         frame_id=str(values["output.frame_id"]),
