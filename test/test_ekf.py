@@ -408,3 +408,21 @@ def test_a_wrong_array_size_raises_instead_of_corrupting_memory(array: str) -> N
         ekf_step(a.initial_state.copy(), a.initial_covariance.copy(), args["model"], args["memo"], a.vehicle,
                  a.settings, args["q"], a.measurement_noise, 1.0, 2.0, 0.0, 0.0, 0.0, 0.0, 0.0, args["ws"],
                  args["out"])
+
+
+def test_a_lasting_clock_step_back_restarts_the_motion_and_the_filter_carries_on(sequence, clean_rows):
+    """Epochs stamped 10 s earlier from some point on (a clock stepped back) restart the motion.
+
+    Beyond max_interval back the step is a GAP (motion re-initialised, stiffness kept); a small
+    step back is still REJECTED_STAMP.
+    """
+    epochs = epoch_list(sequence)
+    ekf = JointEKF(DEFAULT)
+    step_all(ekf, epochs[:INJECT])
+    assert ekf.step(dataclasses.replace(epochs[INJECT], t=epochs[INJECT - 1].t - 0.5)).status \
+        is StepStatus.REJECTED_STAMP
+    stiffness = ekf.state[STIFFNESS].copy()
+    shifted = [dataclasses.replace(e, t=e.t - 10.0) for e in epochs[INJECT:]]
+    assert ekf.step(shifted[0]).status is StepStatus.GAP
+    np.testing.assert_array_equal(ekf.state[STIFFNESS], stiffness)
+    assert_recovers(ekf, shifted[1:], clean_rows)

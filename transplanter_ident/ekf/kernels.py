@@ -12,10 +12,8 @@ The body-frame vy is the GNSS velocity turned by the *measured* heading, so its 
 Beyond the paper (DESIGN.md section 7):
 
 * Q is a spectral density: each interval adds Q dt, so one parameter file fits any GNSS rate;
-* theta and b are random walks; a CUSUM test on the normalised innovation squared (a variance
-  scale change of the innovations) inflates the stiffness variance when the surface changes;
-* outside the linear tire range (predicted slip angle or lateral acceleration over its limit)
-  the update leaves the stiffness and the offset alone (a Schmidt update of the motion states);
+* theta and b are random walks; a surface change (adaptation.py) raises the stiffness's for a while;
+* beyond the linear tire range only the motion states are updated (a Schmidt update);
 * a measurement gated ``max_gated`` times in a row re-initialises the motion states; it never
   forces a stiffness update.
 
@@ -240,7 +238,8 @@ def make_kernels(heading):
         """One epoch, in place; returns the StepStatus (see :func:`.entries.ekf_step` for the shapes).
 
         1. Reject a non-finite epoch or a stamp not after the previous one (nothing changes).
-        2. Initialise, or re-initialise after a gap, at low speed or reversing (motion from z).
+        2. Initialise, or re-initialise after a gap (or a clock step back beyond max_interval), at low
+           speed or reversing (motion from z).
         3. Predict x and the open-loop model over dt (eq. 12), P = F P F^T + Q dt.
         4. Innovation, S and NIS with the lever arm in h(x) and the heading error in vy; the CUSUM test.
         5. Gate; after max_gated gated epochs in a row, re-initialise the motion states.
@@ -253,14 +252,15 @@ def make_kernels(heading):
                 and _finite(vy_antenna) and _finite(psi) and _finite(yaw_rate)):
             write_outputs(x, p, settings, StepStatus.REJECTED_INVALID, model[X_R], model[X_VY], out)
             return StepStatus.REJECTED_INVALID
-        if memo[M_INITIALISED] > 0.5 and t <= memo[M_T_PREV]:
+        stepped_back = t < memo[M_T_PREV] - settings[S_MAX_INTERVAL]  # a lasting clock step: start over below
+        if memo[M_INITIALISED] > 0.5 and t <= memo[M_T_PREV] and not stepped_back:
             write_outputs(x, p, settings, StepStatus.REJECTED_STAMP, model[X_R], model[X_VY], out)
             return StepStatus.REJECTED_STAMP
         # 2.
         status = StepStatus.UPDATED
         if memo[M_INITIALISED] < 0.5:
             status = StepStatus.INITIALISED
-        elif t - memo[M_T_PREV] > settings[S_MAX_INTERVAL]:
+        elif abs(t - memo[M_T_PREV]) > settings[S_MAX_INTERVAL]:
             status = StepStatus.GAP
         elif speed < 0.0 and -speed >= settings[S_MIN_SPEED]:
             status = StepStatus.REVERSING
