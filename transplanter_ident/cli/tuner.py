@@ -14,15 +14,19 @@
    tuned/start ratios of the mean errors; ``--report DIR`` adds the plots of Figs. 4-7.
 
 Every failure (unreadable bag, too few epochs, unwritable output, bad flag) is one line on
-stderr and a non-zero exit; a half-written YAML is never left behind.
+stderr and a non-zero exit; a half-written YAML is never left behind. When no candidate
+produced a finite objective (every one diverged, or never updated: ``ekf.DIVERGENCE_PENALTY``),
+nothing is written. The ``--report`` folder appears whole, together with OUT.yaml, or not at all.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import math
 import os
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -30,11 +34,15 @@ from transplanter_ident.cli.util import CliError, cli_main
 from transplanter_ident.config.params_file import EstimatorParams, load_params
 from transplanter_ident.config.params_writer import write_params_yaml
 from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.files import atomic_output_dir
 from transplanter_ident.tuning.problem import OBJECTIVES
 from transplanter_ident.tuning.pso import ALGORITHMS, IterationRecord
 from transplanter_ident.tuning.tune import compare, header_comment, tune, tuned_parameters
 
 MIN_EPOCHS = 50
+#: what ``--report`` writes (cli/plots.write_report): an existing folder holding only these may be replaced
+REPORT_FILES = frozenset({"fig4_objective.png", "fig5_stiffness_tuned.png", "fig5_stiffness_start.png",
+                          "fig6_model_output_tuned.png", "fig7_model_output_start.png", "report.txt"})
 
 
 class _Parser(argparse.ArgumentParser):
@@ -135,6 +143,7 @@ def _run(args: argparse.Namespace) -> int:
         from transplanter_ident.cli.plots import require_pyplot
 
         require_pyplot()  # fail before the search, not after it
+        check_report_path(args.report)
     params = load_parameters(args.params_file)
     epochs, truth = load_bag(args.bag, params, truth=bool(args.report))
     config = params.config
@@ -143,19 +152,57 @@ def _run(args: argparse.Namespace) -> int:
           f"{config.options.stiffness_state}/{config.options.measurement}", file=sys.stderr)
     outcome = tune(config, epochs, algorithm=args.algorithm, objective=args.objective, particles=args.particles,
                    iterations=args.iterations, seed=args.seed, on_iteration=progress_printer(args.iterations))
-    write_params_yaml(args.output, tuned_parameters(outcome.tuned_config),
-                      header_comment(outcome, args.bag, len(epochs)))
+    check_finite(outcome.result.fitness, outcome.result.evaluations, args.bag)
     result = outcome.result
+    comparison = compare(outcome, epochs)
+    with report_folder(args.report) as staged:  # renamed into place after OUT.yaml is written
+        if staged is not None:
+            from transplanter_ident.cli.plots import write_report
+
+            written = write_report(staged, outcome, epochs, comparison, bag=args.bag, truth=truth)
+        write_params_yaml(args.output, tuned_parameters(outcome.tuned_config),
+                          header_comment(outcome, args.bag, len(epochs)))
     print(f"{args.algorithm}: {args.objective} {outcome.start_fitness:.6g} -> {result.fitness:.6g} "
           f"({result.evaluations} evaluations, {outcome.seconds:.1f} s, seed {outcome.seed}); wrote {args.output}")
-    comparison = compare(outcome, epochs)
     print(comparison.format(f"Table 2 on {args.bag}"))
     if args.report:
-        from transplanter_ident.cli.plots import write_report
-
-        written = write_report(args.report, outcome, epochs, comparison, bag=args.bag, truth=truth)
         print(f"report: {len(written)} files in {args.report}")
     return 0
+
+
+def check_finite(fitness: float, evaluations: int, bag: str) -> None:
+    """CliError when the best objective is not finite: every candidate diverged (DIVERGENCE_PENALTY)."""
+    from transplanter_ident.ekf.layout import DIVERGENCE_PENALTY
+
+    if not (math.isfinite(fitness) and fitness < DIVERGENCE_PENALTY):
+        raise CliError(f"{bag}: none of the {evaluations} candidate Q/R gave a finite objective (each filter "
+                       "diverged or never updated: too slow, below ekf.min_speed, or the base parameters do not fit "
+                       "the bag); nothing written")
+
+
+@contextlib.contextmanager
+def report_folder(path: str | None) -> Iterator[Path | None]:
+    """A staging folder for ``--report DIR``, moved to DIR on success; None without ``--report``.
+
+    An existing DIR is replaced only if it is empty or an earlier report (its files only): never a
+    folder of other files (``--report .``).
+    """
+    if path is None:
+        yield None
+        return
+    check_report_path(path)
+    with atomic_output_dir(path, overwrite=True) as staged:
+        yield staged
+
+
+def check_report_path(path: str) -> None:
+    """CliError if ``--report DIR`` cannot be written, or would replace something that is not a report."""
+    target = Path(path)
+    parent = target.parent if str(target.parent) else Path(".")
+    if target.exists() and (not target.is_dir() or any(p.name not in REPORT_FILES for p in target.iterdir())):
+        raise CliError(f"{target}: exists and is not an earlier report; choose a new folder for --report")
+    if not parent.is_dir():
+        raise CliError(f"{target}: directory {parent} does not exist")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -45,6 +45,8 @@ from transplanter_ident.epochs.steering_line import interval_line
 
 #: s: stamps closer than this count as the same instant (clocks written as float seconds)
 STAMP_EPSILON = 1.0e-6
+#: the most steering samples kept, whatever their rate (the buffer is also trimmed by time): 10 s at 2 kHz
+MAX_STEERING_SAMPLES = 20_000
 
 
 @dataclass(frozen=True)
@@ -97,7 +99,7 @@ class EpochAssembler:
         self.rejections: list[Rejection] = []
         self._velocity: deque[tuple[float, float, float]] = deque(maxlen=32)
         self._heading: deque[tuple[float, float]] = deque(maxlen=32)
-        self._steering: deque[tuple[float, float]] = deque()
+        self._steering: deque[tuple[float, float]] = deque(maxlen=MAX_STEERING_SAMPLES)
         self._last_steering_stamp = -math.inf
         self._pending: deque[tuple[float, float, float, float]] = deque()  # matched GNSS (t, east, north, yaw)
         self.uncovered_epochs = 0  # epochs formed before the steering covered their interval
