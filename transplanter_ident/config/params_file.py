@@ -333,8 +333,8 @@ def read_params_file(path: str | Path, node_name: str = "estimator", *, strict_l
     """
     try:
         text = read_text_file(path)
+        check_sealed(text)  # first: a file cut short is also often invalid YAML, but being cut is the cause
         document = load_yaml_text(text)
-        check_sealed(text)
     except OSError as exc:
         raise ParamsError(f"{path}: cannot read parameters file: {exc.strerror or exc}") from None
     except YamlLimitError as exc:

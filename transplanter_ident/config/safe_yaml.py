@@ -77,21 +77,22 @@ def read_text_file(path: str | Path) -> str:
 
 def load_yaml_text(text: str) -> Any:
     """Parse one YAML document within the limits; YamlLimitError (with the line where known) otherwise."""
-    loader = Loader(text)
     try:
-        node = loader.get_single_node()
-        if node is None:
-            return None
-        expanded_size(node)
-        return loader.construct_document(node)
+        loader = Loader(text)  # the reader refuses control characters here already
+        try:
+            node = loader.get_single_node()
+            if node is None:
+                return None
+            expanded_size(node)
+            return loader.construct_document(node)
+        finally:
+            loader.dispose()
     except YamlLimitError:
         raise
     except yaml.YAMLError as exc:
         raise YamlLimitError(_describe(exc)) from None
     except RecursionError:
         raise YamlLimitError("nested too deeply") from None
-    finally:
-        loader.dispose()
 
 
 def check_sealed(text: str) -> None:
@@ -116,7 +117,9 @@ def short_repr(value: Any, limit: int = 80) -> str:
 def _describe(exc: yaml.YAMLError) -> str:
     mark = getattr(exc, "problem_mark", None)
     where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-    reason = getattr(exc, "problem", None) or getattr(exc, "reason", None) or type(exc).__name__
+    if isinstance(exc, yaml.reader.ReaderError):  # a control character: its position, not its Python repr
+        return f"invalid YAML: character #x{exc.character:04x} at position {exc.position} is not allowed"
+    reason = getattr(exc, "problem", None) or type(exc).__name__
     return f"invalid YAML{where}: {' '.join(str(reason).split())}"
 
 
