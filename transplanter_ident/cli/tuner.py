@@ -86,6 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--iterations", metavar="N", type=_count, default=40, help="iterations k_max (default 40)")
     parser.add_argument("--seed", metavar="N", type=_seed, help="random seed (default: drawn, and recorded in OUT)")
     parser.add_argument("--report", metavar="DIR", help="write plots (Figs. 4-7) and the metrics to DIR")
+    parser.add_argument("--allow-partial", action="store_true",
+                        help="go on when fewer messages can be read than the bag's metadata counts (a corrupt chunk)")
     parser.add_argument("--debug", action="store_true", help="print tracebacks on errors")
     return parser
 
@@ -98,12 +100,14 @@ def load_parameters(files: Sequence[str]) -> EstimatorParams:
     return load_params(list(files)) if files else EstimatorParams()
 
 
-def load_bag(bag: str, params: EstimatorParams, *, truth: bool = False,
-             min_epochs: int = MIN_EPOCHS) -> tuple[EpochArrays, Any]:
+def load_bag(bag: str, params: EstimatorParams, *, truth: bool = False, min_epochs: int = MIN_EPOCHS,
+             allow_partial: bool = False) -> tuple[EpochArrays, Any]:
     """The bag's epochs (and its ground truth, or None); too few epochs to tune is an error."""
     from transplanter_ident.bags import read_bag  # rosbags only where bags are read
 
-    data = read_bag(bag, params, truth=truth)
+    data = read_bag(bag, params, truth=truth, allow_partial=allow_partial)
+    for note in data.notes:
+        print(f"tuner: note: {note}", file=sys.stderr)
     if len(data.epochs) < min_epochs:
         raise CliError(f"{bag}: only {len(data.epochs)} epochs, too short to tune (need at least {min_epochs})")
     return data.epochs, data.truth
@@ -145,7 +149,7 @@ def _run(args: argparse.Namespace) -> int:
         require_pyplot()  # fail before the search, not after it
         check_report_path(args.report)
     params = load_parameters(args.params_file)
-    epochs, truth = load_bag(args.bag, params, truth=bool(args.report))
+    epochs, truth = load_bag(args.bag, params, truth=bool(args.report), allow_partial=args.allow_partial)
     config = params.config
     print(f"tuner: {len(epochs)} epochs from {args.bag}; {args.algorithm} on {args.objective}, "
           f"F = {args.particles}, k_max = {args.iterations}, model {config.options.discretization}/"

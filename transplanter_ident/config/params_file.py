@@ -196,11 +196,18 @@ def _to_float(key: str, value: int | float) -> float:
 
 
 def _check_range(row: Param, number: float, value: Any) -> None:
-    """The schema range (inclusive); NaN is outside every range."""
-    if row.has_range and not row.low <= number <= row.high:
-        what = "entries" if row.kind == "float_list" else ""
-        raise ParamsError(f"{row.key} {what + ' ' if what else ''}must be within [{row.low:g}, {row.high:g}], "
-                          f"got {short_repr(value)}", row.key)
+    """The schema range (inclusive); NaN is outside every range. The message says which bound is missed."""
+    if not row.has_range or row.low <= number <= row.high:
+        return
+    name = f"{row.key} entries" if row.kind == "float_list" else row.key
+    span = f"[{row.low:g}, {row.high:g}]"
+    if not math.isfinite(number):
+        need = f"must be finite numbers within {span}" if row.kind == "float_list" else f"must be finite, within {span}"
+    elif number < row.low:
+        need = f"must be >= {row.low:g} (within {span})"
+    else:
+        need = f"must be within {span}"
+    raise ParamsError(f"{name} {need}, got {short_repr(value)}", row.key)
 
 
 def convert_value(key: str, value: Any) -> Any:

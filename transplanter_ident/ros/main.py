@@ -101,10 +101,19 @@ def main(argv: list[str] | None = None) -> int:
             return _cannot_start(exc)
         raise
     finally:
+        _shut_down(node)
+    return 0
+
+
+def _shut_down(node: EstimatorNode | None) -> None:
+    """Destroy the node and the context; a second Ctrl-C meanwhile only shortens the wait for acknowledgements."""
+    try:
         if node is not None:
             node.destroy_node()
+    except KeyboardInterrupt:
+        pass
+    finally:
         rclpy.try_shutdown()
-    return 0
 
 
 if __name__ == "__main__":
