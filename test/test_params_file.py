@@ -27,6 +27,7 @@ from transplanter_ident.config.params_file import (
     read_params_file,
 )
 from transplanter_ident.config.params_writer import write_params_yaml
+from transplanter_ident.config.safe_yaml import SEALED_FIRST_LINE, SEALED_LAST_LINE
 from transplanter_ident.files import OutputError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -191,7 +192,9 @@ def test_write_read_round_trip(tmp_path: Path) -> None:
     path = tmp_path / "tuned.yaml"
     write_params_yaml(path, params_to_flat(_tuned()), "bag: x.mcap\nobjective: nll, fitness 1.5")
     text = path.read_text()
-    assert text.startswith("# bag: x.mcap\n# objective: nll, fitness 1.5\nestimator:\n  ros__parameters:\n")
+    assert text.startswith(f"{SEALED_FIRST_LINE}\n# bag: x.mcap\n# objective: nll, fitness 1.5\nestimator:\n"
+                           "  ros__parameters:\n")
+    assert text.endswith(f"\n{SEALED_LAST_LINE}\n")  # the seal: a file cut short is refused (issue #14)
     assert load_params([path]) == _tuned()
     # Every number is a float except the integer parameter ekf.max_gated.
     for line in text.splitlines():

@@ -5,6 +5,8 @@
   then ``os.replace``; on failure the temporary is removed and the target is untouched.
 * :func:`one_line` squeezes a message to one line; :class:`Progress` prints coarse progress of
   long jobs to stderr.
+* :class:`OptionalOutput` is an optional append-only text output (the node's latency log) that
+  an I/O error (a full disk) disables, with the reason kept, instead of killing its writer.
 
 No ROS and no numerics: every layer that writes a file uses these.
 """
@@ -94,6 +96,57 @@ def atomic_output_dir(path: str | Path, *, overwrite: bool = False) -> Iterator[
         os.replace(built, target)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+
+
+# --------------------------------------------------------------------------- optional outputs
+
+
+class OptionalOutput:
+    """An append-only text file that is nice to have: the first I/O error closes it and keeps the reason.
+
+    Opening it (the constructor) raises OSError as usual, so a wrong path is refused at start-up;
+    later, :meth:`write` and :meth:`flush` never raise: after a failure they do nothing, and
+    :attr:`error` says why (``No space left on device``).
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.error: str | None = None
+        self._handle: TextIO | None = open(self.path, "a", encoding="utf-8")  # noqa: SIM115 - closed in close()
+
+    @property
+    def active(self) -> bool:
+        return self._handle is not None
+
+    def write(self, text: str) -> None:
+        if self._handle is not None:
+            try:
+                self._handle.write(text)
+            except OSError as exc:
+                self._fail(exc)
+
+    def flush(self) -> None:
+        if self._handle is not None:
+            try:
+                self._handle.flush()
+            except OSError as exc:
+                self._fail(exc)
+
+    def close(self) -> None:
+        handle, self._handle = self._handle, None
+        if handle is not None:
+            try:
+                handle.close()
+            except OSError as exc:
+                self.error = self.error or (exc.strerror or one_line(exc))
+
+    def _fail(self, exc: OSError) -> None:
+        self.error = exc.strerror or one_line(exc)
+        handle, self._handle = self._handle, None
+        try:
+            handle.close()
+        except OSError:
+            pass  # the buffer that failed to flush fails again: the output is off either way
 
 
 # --------------------------------------------------------------------------- progress

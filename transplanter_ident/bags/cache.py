@@ -145,23 +145,25 @@ def cached_bag_epochs(bag: str, params: EstimatorParams, cache_dir: str | Path) 
     return DecodedBag(bag, cached[0], cached[1], "cache") if cached is not None else None
 
 
-def load_bag_epochs(bag: str, params: EstimatorParams, cache_dir: str | Path | None = None) -> DecodedBag:
+def load_bag_epochs(bag: str, params: EstimatorParams, cache_dir: str | Path | None = None,
+                    allow_partial: bool = False) -> DecodedBag:
     """The bag's epochs and ground truth: from the cache if it holds them, else decoded and cached.
 
-    ``cache_dir`` None disables the cache (always decode). Bag errors are :class:`.errors.BagError`.
+    ``cache_dir`` None disables the cache (always decode). Bag errors are :class:`.errors.BagError`;
+    a bag with fewer readable messages than its metadata counts is one unless ``allow_partial``.
     """
     if cache_dir is None:
-        data = read_bag(bag, params, truth=True)
+        data = read_bag(bag, params, truth=True, allow_partial=allow_partial)
         return DecodedBag(bag, _columns(data.epochs), data.truth, "bag")
     try:
         key = cache_key(bag, params)
     except OSError:  # no such bag, or unreadable: read_bag says why
-        data = read_bag(bag, params, truth=True)
+        data = read_bag(bag, params, truth=True, allow_partial=allow_partial)
         return DecodedBag(bag, _columns(data.epochs), data.truth, "bag")
     path = cache_path(bag, key, Path(cache_dir))
     cached = _read(path, key)
     if cached is not None:
         return DecodedBag(bag, cached[0], cached[1], "cache")
-    data = read_bag(bag, params, truth=True)
+    data = read_bag(bag, params, truth=True, allow_partial=allow_partial)
     columns = _columns(data.epochs)
     return DecodedBag(bag, columns, data.truth, "bag", _write(path, key, columns, data.truth))

@@ -195,6 +195,8 @@ class _Scan:
         self.rejections: list[Rejection] = []
         self.notes: list[str] = []
         self.counts: Counter[str] = Counter()
+        self.read_per_connection: Counter[int] = Counter()  # every message read, usable or not
+        self.connections: list[Any] = []
         self.truth_rows: dict[str, list[tuple[float, tuple[float, ...]]]] = {"truth_stiffness": [],
                                                                             "truth_velocity": []}
 
@@ -207,6 +209,8 @@ class _Scan:
             if self.want_truth:
                 table.update(_select_truth(reader, self.notes))
             connections = [c for c in reader.connections if c.id in table]
+            self.connections = connections
+            read = self.read_per_connection
             progress = None
             if self.progress:
                 progress = Progress(sum(c.msgcount for c in connections), f"reading {self.path}")
@@ -216,6 +220,7 @@ class _Scan:
                     progress.update(n)
                     next_report = progress.next_at
                 entries = table[conn.id]
+                read[conn.id] += 1
                 try:
                     msg = deserialize(data, entries[0][2])
                 except _DECODE_ERRORS:
@@ -238,6 +243,15 @@ class _Scan:
                         yield name, stamp, values
             if progress is not None:
                 progress.done()
+
+    def shortfall(self) -> list[str]:
+        """Per topic whose count read differs from the bag's own count: "/gnss/vel: 82 of 601"."""
+        read: Counter[str] = Counter()
+        expected: Counter[str] = Counter()
+        for conn in self.connections:
+            read[conn.topic] += self.read_per_connection[conn.id]
+            expected[conn.topic] += conn.msgcount
+        return [f"{topic}: {read[topic]} of {expected[topic]}" for topic in expected if read[topic] != expected[topic]]
 
 
 def _build_truth(rows: dict[str, list[tuple[float, tuple[float, ...]]]]) -> Truth | None:
@@ -274,15 +288,24 @@ def read_samples(path: str | Path, params: Any,
             rejections.extend(scan.rejections)
 
 
-def read_bag(path: str | Path, params: Any, *, truth: bool = True, progress: bool = False) -> BagData:
+def read_bag(path: str | Path, params: Any, *, truth: bool = True, progress: bool = False,
+             allow_partial: bool = False) -> BagData:
     """One streaming pass: epochs (via the node's EpochAssembler), rejections, ground truth, counts.
 
     Raises :class:`BagError` when the bag cannot be read, an input topic is missing or mistyped,
-    or no epoch can be formed.
+    or no epoch can be formed; and when fewer (or more) messages could be read than the bag's
+    metadata counts (rosbags skips a corrupt MCAP chunk silently), unless ``allow_partial``: then
+    the difference is a note.
     """
     scan = _Scan(path, params, truth=truth, progress=progress)
     assembler = EpochAssembler(AssemblerSettings.from_params(params))
     epochs = assemble(assembler, scan.samples())
+    missing = scan.shortfall()
+    if missing and not allow_partial:
+        raise BagError(f"{path}: messages read differ from the bag's own counts ({'; '.join(missing)}): a corrupt "
+                       "or truncated chunk was skipped (use --allow-partial to go on with what could be read)")
+    if missing:
+        scan.notes.append(f"partial bag: messages read of the bag's own counts: {'; '.join(missing)}")
     rejections = scan.rejections + assembler.drain_rejections()
     rejections.sort(key=lambda r: r.stamp)
     counts = {role: scan.counts.get(role, 0) for role in ROLES}

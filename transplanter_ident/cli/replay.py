@@ -10,7 +10,11 @@ filter core (:func:`transplanter_ident.ekf.run_sequence`) runs over them. Then r
   stiffness error against the truth sampled at the epoch times;
 * prints the rejected samples, counted by reason;
 * writes the CSV (``--csv``, columns pinned in DESIGN.md section 3) and an MCAP bag with the
-  node's output topics (``-o``), both atomically.
+  node's output topics (``-o``), both atomically and together: after a failure neither exists.
+
+A bag whose message counts differ from its own metadata (a corrupt chunk that rosbags skipped) is
+an error unless ``--allow-partial``; epoch stamps that a bag cannot hold (header.stamp.sec beyond
+int32, a negative log time) are an error before anything is written.
 
 Example: ``replay bags/sine --params-file config/estimator.yaml --csv sine.csv``.
 """
@@ -18,7 +22,9 @@ Example: ``replay bags/sine --params-file config/estimator.yaml --csv sine.csv``
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -47,6 +53,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--csv", metavar="OUT.csv", help="write one CSV row per processed epoch")
     parser.add_argument("--force", action="store_true", help="replace OUT_BAG_DIR if it exists")
+    parser.add_argument("--allow-partial", action="store_true",
+                        help="go on when fewer messages can be read than the bag's metadata counts (a corrupt chunk)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
     parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
     return parser
@@ -60,21 +68,57 @@ def _load_params(paths: list[str]):  # noqa: ANN202 - EstimatorParams, imported 
 
 def write_csv(path: str | Path, epochs, outputs, valid) -> int:  # noqa: ANN001 - EpochArrays, ndarrays
     """Write the replay CSV (header + one row per epoch) atomically; returns the number of rows."""
+    with atomic_output_file(path, "w", newline="") as handle:
+        return _write_csv_rows(handle, epochs, outputs, valid)
+
+
+def _write_csv_rows(handle, epochs, outputs, valid) -> int:  # noqa: ANN001 - text file, EpochArrays, ndarrays
     import numpy as np
 
     from transplanter_ident.evaluation.metrics import CSV_COLUMNS, csv_rows
 
     rows = csv_rows(epochs, outputs, valid)
     fmt = ["%.6f"] + ["%.10g"] * (rows.shape[1] - 2) + ["%d"]  # t: us (float64 epoch seconds hold ~0.2 us)
-    with atomic_output_file(path, "w", newline="") as handle:
-        np.savetxt(handle, rows, fmt=fmt, delimiter=",", header=",".join(CSV_COLUMNS), comments="")
+    np.savetxt(handle, rows, fmt=fmt, delimiter=",", header=",".join(CSV_COLUMNS), comments="")
     return rows.shape[0]
+
+
+#: the epoch times (s) an output bag can hold: header.stamp.sec is an int32, an MCAP log time a uint64 of ns
+BAG_TIME_RANGE = (0.0, 2.0**31 - 1.0)
+
+
+def check_bag_times(times) -> None:  # noqa: ANN001 - ndarray of epoch times, s
+    """CliError naming the first epoch time that an output bag cannot hold."""
+    import numpy as np
+
+    low, high = BAG_TIME_RANGE
+    bad = np.flatnonzero(~((times >= low) & (times < high)))
+    if bad.size:
+        raise CliError(f"epoch time {float(times[bad[0]])!r} s (and {bad.size - 1} more) cannot be written to a bag: "
+                       f"stamps must lie in [{low:g}, {high:.0f}) s (header.stamp.sec is an int32, log times are "
+                       "not negative); check the input stamps and gnss.delay. Nothing was written")
+
+
+def write_outputs(args: argparse.Namespace, epochs, outputs, valid, frame_id: str) -> None:  # noqa: ANN001
+    """The CSV and the output bag, all or nothing: the CSV is complete (synced) before the bag, renamed after it."""
+    from transplanter_ident.bags import write_output_bag
+
+    if args.output:
+        check_bag_times(epochs.t)
+    with contextlib.ExitStack() as stack:
+        if args.csv:
+            handle = stack.enter_context(atomic_output_file(args.csv, "w", newline=""))
+            _write_csv_rows(handle, epochs, outputs, valid)
+            handle.flush()
+            os.fsync(handle.fileno())
+        if args.output:
+            write_output_bag(args.output, epochs, outputs, overwrite=args.force, frame_id=frame_id)
 
 
 def _run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from transplanter_ident.bags import read_bag, summarize_rejections, write_output_bag
+    from transplanter_ident.bags import read_bag, summarize_rejections
     from transplanter_ident.config.params_file import parameter_value
     from transplanter_ident.ekf.joint_ekf import run_sequence
     from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD, O_OFFSET
@@ -86,15 +130,11 @@ def _run(args: argparse.Namespace) -> int:
     if args.csv and Path(args.csv).is_dir():
         raise CliError(f"{args.csv}: is a directory")
     params = _load_params(args.params_file)
-    data = read_bag(args.bag, params, truth=True, progress=not args.quiet)
+    data = read_bag(args.bag, params, truth=True, progress=not args.quiet, allow_partial=args.allow_partial)
     epochs = data.epochs
     outputs = run_sequence(params.config, epochs)
     valid = decide_sequence(params.config, params.validity, epochs, outputs)
-    if args.csv:
-        write_csv(args.csv, epochs, outputs, valid)
-    if args.output:
-        write_output_bag(args.output, epochs, outputs, overwrite=args.force,
-                         frame_id=parameter_value(params, "output.frame_id"))
+    write_outputs(args, epochs, outputs, valid, parameter_value(params, "output.frame_id"))
 
     counts = data.counts
     span = float(epochs.t[-1] - epochs.t[0]) if len(epochs) else 0.0

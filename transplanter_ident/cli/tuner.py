@@ -21,15 +21,19 @@
    of Figs. 4-7 and the tables.
 
 Every failure (unreadable bag, too few epochs, unwritable output, bad flag) is one line on
-stderr and a non-zero exit; a half-written YAML is never left behind.
+stderr and a non-zero exit; a half-written YAML is never left behind. When no candidate
+produced a finite objective (every one diverged, or never updated: ``ekf.DIVERGENCE_PENALTY``),
+nothing is written. The ``--report`` folder appears whole, together with OUT.yaml, or not at all.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import math
 import os
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from functools import partial
 from pathlib import Path
 from typing import Any, NoReturn
@@ -38,6 +42,7 @@ from transplanter_ident.cli.util import CliError, cli_main
 from transplanter_ident.config.params_file import EstimatorParams, load_params
 from transplanter_ident.config.params_writer import write_params_yaml
 from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.files import atomic_output_dir
 from transplanter_ident.tuning.multi import MultiBagProblem, leave_one_out
 from transplanter_ident.tuning.parallel import (
     Backend,
@@ -53,6 +58,8 @@ from transplanter_ident.tuning.tune import ALGORITHMS, compare, header_comment, 
 from transplanter_ident.tuning.tune import tune as tune  # one bag, in-process (tests, benchmarks)
 
 MIN_EPOCHS = 50
+#: an existing ``--report`` folder holding only such files (an earlier report) may be replaced
+REPORT_SUFFIXES = (".png", ".txt")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -108,6 +115,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--epoch-cache", metavar="DIR", default=None,
                         help="where decoded epochs are kept (default $XDG_CACHE_HOME/transplanter_ident/epochs)")
     parser.add_argument("--no-epoch-cache", action="store_true", help="decode every bag, keep nothing")
+    parser.add_argument("--allow-partial", action="store_true",
+                        help="go on when fewer messages can be read than the bag's metadata counts (a corrupt chunk)")
     parser.add_argument("--no-leave-one-out", action="store_true",
                         help="with several bags, skip the leave-one-bag-out check (2 tuning runs per bag)")
     parser.add_argument("--debug", action="store_true", help="print tracebacks on errors")
@@ -171,7 +180,7 @@ def cache_dir(args: argparse.Namespace) -> Path | None:
 
 
 def load_bags(bags: Sequence[str], params: EstimatorParams, backend: Backend, cache: Path | None,
-              stream: Any = None) -> list[Any]:
+              stream: Any = None, allow_partial: bool = False) -> list[Any]:
     """Each bag's ``bags.cache.DecodedBag`` (decoded in parallel on ``backend``; one line each on stderr)."""
     from transplanter_ident.bags.cache import (  # rosbags only where bags are read
         cached_bag_epochs,
@@ -181,7 +190,7 @@ def load_bags(bags: Sequence[str], params: EstimatorParams, backend: Backend, ca
     out = stream if stream is not None else sys.stderr
     decoded = [cached_bag_epochs(bag, params, cache) if cache is not None else None for bag in bags]
     missing = [i for i, item in enumerate(decoded) if item is None]
-    for i, item in zip(missing, backend.map(load_bag_epochs, [(bags[i], params, cache) for i in missing]),
+    for i, item in zip(missing, backend.map(load_bag_epochs, [(bags[i], params, cache, allow_partial) for i in missing]),
                        strict=True):
         decoded[i] = item
     for item in decoded:
@@ -215,7 +224,9 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend, remote: Backend) -> int:
-    decoded = load_bags(args.bags, params, local, cache_dir(args))
+    if args.report:
+        check_report_path(args.report)
+    decoded = load_bags(args.bags, params, local, cache_dir(args), allow_partial=args.allow_partial)
     epochs = [item.epochs for item in decoded]
     truths = [item.truth for item in decoded]
     config = params.config
@@ -227,15 +238,9 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
           f"{config.options.stiffness_state}/{config.options.measurement}; {where}", file=sys.stderr)
     outcome = tune_problem(problem, algorithm=args.algorithm, particles=args.particles, iterations=args.iterations,
                            seed=args.seed, on_iteration=progress_printer(args.iterations))
-    write_params_yaml(args.output, tuned_parameters(outcome.tuned_config),
-                      header_comment(outcome, args.bags, [len(e) for e in epochs]))
+    check_finite(outcome.result.fitness, outcome.result.evaluations, ", ".join(args.bags))
     result = outcome.result
-    print(f"{args.algorithm}: {args.objective} {outcome.start_fitness:.6g} -> {result.fitness:.6g} "
-          f"({result.evaluations} evaluations, {outcome.seconds:.1f} s, seed {outcome.seed}); wrote {args.output}")
-    comparisons = []
-    for bag, bag_epochs in zip(args.bags, epochs, strict=True):
-        comparisons.append(compare(outcome, bag_epochs))
-        print(comparisons[-1].format(f"Table 2 on {bag}"))
+    comparisons = [compare(outcome, bag_epochs) for bag_epochs in epochs]
     holdout = None
     if len(args.bags) > 1 and not args.no_leave_one_out:
         def tune_fold(fold: MultiBagProblem, seed: int) -> Any:
@@ -244,18 +249,62 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
 
         holdout = leave_one_out(problem, epochs, truths, args.bags, tune_fold, outcome.seed,
                                 on_fold=lambda line: print(f"tuner: {line}", file=sys.stderr, flush=True))
+    with report_folder(args.report) as staged:  # renamed into place after OUT.yaml is written
+        if staged is not None:
+            from transplanter_ident.cli.plots import write_multi_report, write_report
+
+            if len(args.bags) == 1:
+                written = write_report(staged, outcome, epochs[0], comparisons[0], bag=args.bags[0],
+                                       truth=truths[0])
+            else:
+                written = write_multi_report(staged, outcome, epochs, comparisons, bags=args.bags, truths=truths,
+                                             holdout=holdout)
+        write_params_yaml(args.output, tuned_parameters(outcome.tuned_config),
+                          header_comment(outcome, args.bags, [len(e) for e in epochs]))
+    print(f"{args.algorithm}: {args.objective} {outcome.start_fitness:.6g} -> {result.fitness:.6g} "
+          f"({result.evaluations} evaluations, {outcome.seconds:.1f} s, seed {outcome.seed}); wrote {args.output}")
+    for bag, comparison in zip(args.bags, comparisons, strict=True):
+        print(comparison.format(f"Table 2 on {bag}"))
+    if holdout is not None:
         print(holdout.format())
     if args.report:
-        from transplanter_ident.cli.plots import write_multi_report, write_report
-
-        if len(args.bags) == 1:
-            written = write_report(args.report, outcome, epochs[0], comparisons[0], bag=args.bags[0],
-                                   truth=truths[0])
-        else:
-            written = write_multi_report(args.report, outcome, epochs, comparisons, bags=args.bags, truths=truths,
-                                         holdout=holdout)
         print(f"report: {len(written)} files in {args.report}")
     return 0
+
+
+def check_finite(fitness: float, evaluations: int, bag: str) -> None:
+    """CliError when the best objective is not finite: every candidate diverged (DIVERGENCE_PENALTY)."""
+    from transplanter_ident.ekf.layout import DIVERGENCE_PENALTY
+
+    if not (math.isfinite(fitness) and fitness < DIVERGENCE_PENALTY):
+        raise CliError(f"{bag}: none of the {evaluations} candidate Q/R gave a finite objective (each filter "
+                       "diverged or never updated: too slow, below ekf.min_speed, or the base parameters do not fit "
+                       "the bag); nothing written")
+
+
+@contextlib.contextmanager
+def report_folder(path: str | None) -> Iterator[Path | None]:
+    """A staging folder for ``--report DIR``, moved to DIR on success; None without ``--report``.
+
+    An existing DIR is replaced only if it is empty or an earlier report (its files only): never a
+    folder of other files (``--report .``).
+    """
+    if path is None:
+        yield None
+        return
+    check_report_path(path)
+    with atomic_output_dir(path, overwrite=True) as staged:
+        yield staged
+
+
+def check_report_path(path: str) -> None:
+    """CliError if ``--report DIR`` cannot be written, or would replace something that is not a report."""
+    target = Path(path)
+    parent = target.parent if str(target.parent) else Path(".")
+    if target.exists() and (not target.is_dir() or any(p.suffix not in REPORT_SUFFIXES for p in target.iterdir())):
+        raise CliError(f"{target}: exists and is not an earlier report; choose a new folder for --report")
+    if not parent.is_dir():
+        raise CliError(f"{target}: directory {parent} does not exist")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -165,6 +165,13 @@ class EstimatorConfig:
     options: FilterOptions = field(default_factory=FilterOptions)
     noise: NoiseParams = field(default_factory=NoiseParams)
 
+    def __post_init__(self) -> None:
+        low, high = self.options.stiffness_bounds
+        for value in self.noise.initial_stiffness:
+            if not low <= value <= high:
+                raise ValueError(f"ekf.initial_stiffness entries must lie within ekf.stiffness_bounds "
+                                 f"[{low:g}, {high:g}], got {value!r}")
+
 
 def check_fields(obj: object, namespace: str, *, positive: tuple[str, ...] = (), non_negative: tuple[str, ...] = (),
                  finite: tuple[str, ...] = ()) -> None:

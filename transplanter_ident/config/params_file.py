@@ -30,14 +30,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from transplanter_ident.config.parameters import (
     EstimatorConfig,
     FilterOptions,
     NoiseParams,
     ValiditySettings,
     VehicleParams,
+)
+from transplanter_ident.config.safe_yaml import (
+    YamlLimitError,
+    check_sealed,
+    load_yaml_text,
+    read_text_file,
+    short_repr,
 )
 from transplanter_ident.config.schema import (
     FRAMES,
@@ -70,8 +75,12 @@ class TopicConfig:
 
     def __post_init__(self) -> None:
         for name in ("velocity", "heading", "steering"):
-            if not getattr(self, name):
+            value = getattr(self, name)
+            if not value:
                 raise ValueError(f"topics.{name} must be a non-empty topic name")
+            if not is_topic_name(value):
+                raise ValueError(f"topics.{name} {short_repr(value)} is not a valid ROS 2 topic name (letters, digits, "
+                                 "_ and / only, a name part never starting with a digit, no // and no / at the end)")
 
 
 @dataclass(frozen=True)
@@ -155,6 +164,16 @@ DATACLASS_KEYS = frozenset(f"{ns}.{name}" for ns, classes in _SECTIONS.items() f
 NODE_ONLY_KEYS = tuple(row.key for row in SCHEMA if row.key not in DATACLASS_KEYS)
 
 
+#: one part of a ROS 2 topic name: letters, digits and _ (not leading with a digit), or a {substitution}
+_TOKEN = r"(?:[A-Za-z_]|\{[A-Za-z_][A-Za-z0-9_]*\})(?:[A-Za-z0-9_]|\{[A-Za-z_][A-Za-z0-9_]*\})*"
+_TOPIC_NAME = re.compile(rf"(?:~|~?/?{_TOKEN}(?:/{_TOKEN})*)")
+
+
+def is_topic_name(name: str) -> bool:
+    """Whether ``name`` is a valid (unexpanded) ROS 2 topic name, as rcl_validate_topic_name decides."""
+    return _TOPIC_NAME.fullmatch(name) is not None
+
+
 def is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
@@ -163,22 +182,43 @@ def _convert_scalar(row: Param, value: Any) -> Any:
     key = row.key
     if row.kind == "str":
         if not isinstance(value, str):
-            raise ParamsError(f"{key} must be a string, got {value!r}", key)
+            raise ParamsError(f"{key} must be a string, got {short_repr(value)}", key)
         if row.choices and row.match(value) is None:
-            raise ParamsError(f"{key} must be one of {', '.join(row.choices)}, got {value!r}", key)
+            raise ParamsError(f"{key} must be one of {', '.join(row.choices)}, got {short_repr(value)}", key)
         return value
     if row.kind == "bool":
         if not isinstance(value, bool):
-            raise ParamsError(f"{key} must be true or false, got {value!r}", key)
+            raise ParamsError(f"{key} must be true or false, got {short_repr(value)}", key)
         return value
     if row.kind == "int" and not (is_number(value) and isinstance(value, int)):
-        raise ParamsError(f"{key} must be an integer, got {value!r}", key)
+        raise ParamsError(f"{key} must be an integer, got {short_repr(value)}", key)
     if not is_number(value):
-        raise ParamsError(f"{key} must be a number, got {value!r}", key)
-    number = value if row.kind == "int" else float(value)
-    if row.has_range and not row.low <= number <= row.high:
-        raise ParamsError(f"{key} must be within [{row.low:g}, {row.high:g}], got {value!r}", key)
+        raise ParamsError(f"{key} must be a number, got {short_repr(value)}", key)
+    number = value if row.kind == "int" else _to_float(key, value)
+    _check_range(row, number, value)
     return number
+
+
+def _to_float(key: str, value: int | float) -> float:
+    try:
+        return float(value)
+    except OverflowError:  # an integer of hundreds of digits
+        raise ParamsError(f"{key}: {short_repr(value)} is out of the range of a float", key) from None
+
+
+def _check_range(row: Param, number: float, value: Any) -> None:
+    """The schema range (inclusive); NaN is outside every range. The message says which bound is missed."""
+    if not row.has_range or row.low <= number <= row.high:
+        return
+    name = f"{row.key} entries" if row.kind == "float_list" else row.key
+    span = f"[{row.low:g}, {row.high:g}]"
+    if not math.isfinite(number):
+        need = f"must be finite numbers within {span}" if row.kind == "float_list" else f"must be finite, within {span}"
+    elif number < row.low:
+        need = f"must be >= {row.low:g} (within {span})"
+    else:
+        need = f"must be within {span}"
+    raise ParamsError(f"{name} {need}, got {short_repr(value)}", row.key)
 
 
 def convert_value(key: str, value: Any) -> Any:
@@ -192,13 +232,16 @@ def convert_value(key: str, value: Any) -> Any:
     if row.kind != "float_list":
         return _convert_scalar(row, value)
     if not isinstance(value, (list, tuple)):
-        raise ParamsError(f"{key} must be a list of {row.length} numbers, got {value!r}", key)
+        raise ParamsError(f"{key} must be a list of {row.length} numbers, got {short_repr(value)}", key)
     if len(value) != row.length:
         raise ParamsError(f"{key} must have {row.length} entries, got {len(value)}", key)
+    numbers = []
     for entry in value:
         if not is_number(entry):
-            raise ParamsError(f"{key} entries must be numbers, got {entry!r}", key)
-    return tuple(float(entry) for entry in value)
+            raise ParamsError(f"{key} entries must be numbers, got {short_repr(entry)}", key)
+        numbers.append(_to_float(key, entry))
+        _check_range(row, numbers[-1], entry)
+    return tuple(numbers)
 
 
 def _build(cls: type, values: Mapping[str, Any]) -> Any:
@@ -232,11 +275,9 @@ def flat_to_params(flat: Mapping[str, Any]) -> EstimatorParams:
             sections[namespace][name] = converted
 
     ekf = sections["ekf"]
-    config = EstimatorConfig(
-        vehicle=_build(VehicleParams, sections["vehicle"]),
-        options=_build(FilterOptions, ekf),
-        noise=_build(NoiseParams, ekf),
-    )
+    parts = {"vehicle": _build(VehicleParams, sections["vehicle"]), "options": _build(FilterOptions, ekf),
+             "noise": _build(NoiseParams, ekf)}
+    config = _build(EstimatorConfig, parts)
     return EstimatorParams(
         config=config,
         topics=_build(TopicConfig, sections["topics"]),
@@ -274,48 +315,59 @@ def params_to_flat(p: EstimatorParams) -> dict[str, Any]:
     return flat
 
 
-class _Loader(yaml.SafeLoader):
-    """SafeLoader that also reads YAML 1.2 floats such as ``1e-4`` as numbers, as the rcl parser does."""
-
-
-_Loader.add_implicit_resolver(
-    "tag:yaml.org,2002:float",
-    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
-    list("-+0123456789."),
-)
-
-
-def _flatten(mapping: Mapping[Any, Any], prefix: str, out: dict[str, Any], source: str) -> None:
+def _flatten(mapping: Mapping[Any, Any], prefix: str, out: dict[str, Any], source: str, *,
+             strict_lists: bool = False) -> None:
     for name, value in mapping.items():
         key = f"{prefix}{name}"
         if not isinstance(name, str):
             raise ParamsError(f"{source}: parameter name {key!r} is not a string", key)
         if isinstance(value, Mapping):
-            _flatten(value, key + ".", out, source)
+            _flatten(value, key + ".", out, source, strict_lists=strict_lists)
         elif value is None:
             raise ParamsError(f"{source}: {key} has no value", key)
         else:
+            if strict_lists:
+                _check_list(value, key, source)
             out[key] = value
 
 
-def read_params_file(path: str | Path, node_name: str = "estimator") -> dict[str, Any]:
-    """Read one params file: the flat parameters of ``/**`` overlaid with those of ``node_name``."""
+def _check_list(value: Any, key: str, source: str) -> None:
+    """The rcl parser (and so the node) refuses a list that mixes integers and floats: so do we, naming it."""
+    if not isinstance(value, list):
+        return
+    kinds = {type(v) for v in value}
+    if int in kinds and float in kinds:
+        raise ParamsError(f"{source}: {key} mixes integers and floats ({short_repr(value)}); the ROS 2 parameter "
+                          "parser refuses such a list: write every entry as a float (1.0, not 1)", key)
+
+
+def read_params_file(path: str | Path, node_name: str = "estimator", *, strict_lists: bool = False,
+                     require_section: bool = True) -> dict[str, Any]:
+    """Read one params file: the flat parameters of ``/**`` overlaid with those of ``node_name``.
+
+    Read safely (:mod:`.safe_yaml`: size, aliases, nesting); a file that says it was written by
+    :mod:`.params_writer` must hold its closing line (:data:`~.safe_yaml.SEALED_LAST_LINE`), else it was cut short.
+    ``strict_lists``: refuse lists that mix integers and floats, as the rcl parser does (the node's check;
+    offline, ``[1, 1.0e-4]`` is read as floats). ``require_section`` False: a file without a section
+    for ``node_name`` gives no parameters instead of an error (the node: rcl applies none of it).
+    """
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        text = read_text_file(path)
+        check_sealed(text)  # first: a file cut short is also often invalid YAML, but being cut is the cause
+        document = load_yaml_text(text)
     except OSError as exc:
         raise ParamsError(f"{path}: cannot read parameters file: {exc.strerror or exc}") from None
-    try:
-        document = yaml.load(text, Loader=_Loader)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
-        reason = getattr(exc, "problem", None) or type(exc).__name__
-        raise ParamsError(f"{path}: invalid YAML{where}: {reason}") from None
+    except YamlLimitError as exc:
+        raise ParamsError(f"{path}: {exc}") from None
+    if document is None:
+        raise ParamsError(f"{path}: the file holds no parameters (empty)")
     if not isinstance(document, Mapping):
         raise ParamsError(f"{path}: top level must be a mapping of node names, got {type(document).__name__}")
     sections = [n for n in (WILDCARD, node_name, "/" + node_name.lstrip("/")) if n in document]
+    if not sections and not require_section:
+        return {}
     if not sections:
-        found = ", ".join(map(str, document)) or "nothing"
+        found = short_repr(list(map(str, document))) if document else "nothing"
         raise ParamsError(f"{path}: no '{WILDCARD}' or '{node_name}' section (found: {found})")
     flat: dict[str, Any] = {}
     for section in dict.fromkeys(sections):
@@ -324,8 +376,8 @@ def read_params_file(path: str | Path, node_name: str = "estimator") -> dict[str
             raise ParamsError(f"{path}: '{section}' must hold a 'ros__parameters' mapping")
         params = body["ros__parameters"] or {}
         if not isinstance(params, Mapping):
-            raise ParamsError(f"{path}: '{section}.ros__parameters' must be a mapping, got {params!r}")
-        _flatten(params, "", flat, str(path))
+            raise ParamsError(f"{path}: '{section}.ros__parameters' must be a mapping, got {short_repr(params)}")
+        _flatten(params, "", flat, str(path), strict_lists=strict_lists)
     return flat
 
 

@@ -2,6 +2,11 @@
 
 Every number of a float key is written as a float (the rcl parser rejects mixed int/float
 lists); integer keys of the schema stay integers. The tuner's output goes through here.
+
+Every file is sealed: its first line (``SEALED_FIRST_LINE``) says that it is complete only if it
+holds the last line ``# end``, and :func:`~.params_file.read_params_file` refuses such a file without
+it: a tuned file cut mid-number (``1.0e-08`` cut to ``1.``) would otherwise load as another value.
+Hand-written files (no such first line) are not affected; editing a sealed file by hand is fine.
 """
 
 from __future__ import annotations
@@ -15,7 +20,8 @@ from typing import Any
 
 import yaml
 
-from transplanter_ident.config.params_file import INT_KEYS, ParamsError, _Loader, flat_to_params, is_number
+from transplanter_ident.config.params_file import INT_KEYS, ParamsError, flat_to_params, is_number
+from transplanter_ident.config.safe_yaml import SEALED_FIRST_LINE, SEALED_LAST_LINE, Loader
 from transplanter_ident.files import atomic_write_text
 
 
@@ -34,7 +40,7 @@ def _format_scalar(key: str, value: Any, *, as_int: bool = False) -> str:
         return text
     if isinstance(value, str):
         plain = re.fullmatch(r"[A-Za-z_/~][A-Za-z0-9_/.~-]*", value) is not None
-        if plain and yaml.load(value, Loader=_Loader) == value:
+        if plain and yaml.load(value, Loader=Loader) == value:
             return value
         return json.dumps(value)
     raise ParamsError(f"{key} has an unsupported type {type(value).__name__}", key)
@@ -65,7 +71,7 @@ def dump_params_yaml(flat: Mapping[str, Any], header_comment: str = "", node_nam
         if leaf in node:
             raise ParamsError(f"{key} clashes with a parameter namespace of the same name", key)
         node[leaf] = _format_value(key, value)
-    lines = [f"# {line}".rstrip() for line in header_comment.splitlines()]
+    lines = [SEALED_FIRST_LINE, *(f"# {line}".rstrip() for line in header_comment.splitlines())]
     lines += [f"{node_name}:", "  ros__parameters:"]
 
     def emit(node: dict[str, Any], indent: int) -> None:
@@ -77,6 +83,7 @@ def dump_params_yaml(flat: Mapping[str, Any], header_comment: str = "", node_nam
                 lines.append(f"{' ' * indent}{name}: {value}")
 
     emit(tree, 4)
+    lines.append(SEALED_LAST_LINE)
     return "\n".join(lines) + "\n"
 
 

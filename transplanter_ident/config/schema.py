@@ -53,6 +53,9 @@ class Param:
             raise ValueError(f"{self.key}: default {self.default!r} is not of kind {self.kind}")
         if self.choices and self.match(str(self.default)) is None:
             raise ValueError(f"{self.key}: default {self.default!r} is not one of its choices")
+        entries = self.default if isinstance(self.default, tuple) else (self.default,)
+        if self.has_range and not all(self.low <= v <= self.high for v in entries):
+            raise ValueError(f"{self.key}: default {self.default!r} is outside [{self.low}, {self.high}]")
 
     @property
     def length(self) -> int | None:
@@ -71,8 +74,11 @@ class Param:
         return None
 
     def help_text(self) -> str:
-        """The description with the unit, as the node's ParameterDescriptor shows it."""
-        return self.description + (f" [{self.unit}]" if self.unit else "")
+        """The description with the unit (and a list's range), as the node's ParameterDescriptor shows it."""
+        text = self.description + (f" [{self.unit}]" if self.unit else "")
+        if self.kind == "float_list" and self.has_range:  # rclpy checks FloatingPointRange on scalars only
+            text += f"; entries within [{self.low:g}, {self.high:g}]"
+        return text
 
 
 def _default_has_kind(default: Any, kind: str) -> bool:
@@ -98,8 +104,17 @@ def _bool(key: str, default: bool, description: str) -> Param:
     return Param(key, "bool", default, "", description)
 
 
-def _floats(key: str, default: tuple[float, ...], unit: str, description: str, *, read_only: bool = True) -> Param:
-    return Param(key, "float_list", default, unit, description, read_only=read_only)
+def _floats(key: str, default: tuple[float, ...], unit: str, description: str, low: float | None = None,
+            high: float | None = None, *, read_only: bool = True) -> Param:
+    """A fixed-length float list; ``low``/``high`` bound every entry."""
+    return Param(key, "float_list", default, unit, description, low, high, read_only=read_only)
+
+
+#: the largest value of any noise entry (Q density or R; absurd beyond, e.g. a run-time Q of 1e300
+#: that made the filter diverge for good): the tuner's search box (tuning/problem.py) lies well inside
+MAX_NOISE = 1.0e6
+#: N/rad: the range of the stiffness bounds and of the initial stiffness (which must also lie within the bounds)
+STIFFNESS_RANGE = (1.0, 1.0e8)
 
 
 SCHEMA: tuple[Param, ...] = (
@@ -107,7 +122,7 @@ SCHEMA: tuple[Param, ...] = (
     _float("vehicle.mass", 720.0, "kg", "vehicle mass (paper Table 1)", 1.0, 1.0e5),
     _float("vehicle.lf", 0.7, "m", "CG to front axle", 0.01, 20.0),
     _float("vehicle.lr", 0.4, "m", "CG to rear axle", 0.01, 20.0),
-    _float("vehicle.iz", 0.0, "kg m^2", "yaw inertia; <= 0 means m*lf*lr (paper eq. 5)"),
+    _float("vehicle.iz", 0.0, "kg m^2", "yaw inertia; <= 0 means m*lf*lr (paper eq. 5)", -1.0e7, 1.0e7),
     _float("vehicle.antenna_x", 0.0, "m", "GNSS antenna ahead of the CG", -20.0, 20.0),
     _float("vehicle.antenna_y", 0.0, "m", "GNSS antenna left of the CG", -20.0, 20.0),
     _float("vehicle.max_steering", 0.7, "rad", "steering limit; a sample beyond it is rejected", 0.001, 1.6),
@@ -164,29 +179,30 @@ SCHEMA: tuple[Param, ...] = (
     # noise (settable at run time; the initial values are used from the next ~/reset)
     _floats("ekf.process_noise", (1.0e-4, 1.0e-4, 1.5e-5, 1.5e-5), "state units^2/s",
             "diag Q for vy, r, Cf, Cr as a spectral density (each GNSS interval dt adds Q dt), in the units "
-            "of the state; per step with ekf.process_noise_units: per_step", read_only=False),
+            "of the state; per step with ekf.process_noise_units: per_step", 0.0, MAX_NOISE, read_only=False),
     _str("ekf.process_noise_units", "per_second", "per_second (Q a spectral density: one file fits any GNSS "
          "rate) or per_step (per GNSS interval of ekf.process_noise_step, as before version 0.2)", NOISE_UNITS),
     _float("ekf.process_noise_step", 0.2, "s", "the GNSS interval per_step values were tuned for", 0.001, 10.0),
     _floats("ekf.measurement_noise", (4.0e-4, 1.2e-5), "(m/s)^2, rad^2",
-            "diag R: vy, then heading (or r in (rad/s)^2 in yaw_rate mode)", read_only=False),
+            "diag R: vy, then heading (or r in (rad/s)^2 in yaw_rate mode)", 0.0, MAX_NOISE, read_only=False),
     _float("ekf.heading_process_noise", 1.0e-8, "rad^2/s", "Q density of the heading state (heading mode)",
-           read_only=False),
+           0.0, MAX_NOISE, read_only=False),
     _bool("ekf.estimate_steering_offset", True, "estimate the steering-sensor offset as a filter state"),
     _float("ekf.steering_offset_process_noise", 1.0e-8, "rad^2/s", "Q density of the steering offset",
-           read_only=False),
+           0.0, MAX_NOISE, read_only=False),
     _float("ekf.steering_offset_initial_variance", 1.2e-3, "rad^2", "P0 of the steering offset (2 deg 1-sigma; "
-           "used from the next ~/reset)", read_only=False),
-    _floats("ekf.initial_stiffness", (1000.0, 1000.0), "N/rad", "initial Cf, Cr (used from the next ~/reset)",
-            read_only=False),
+           "used from the next ~/reset)", 0.0, 1.0, read_only=False),
+    _floats("ekf.initial_stiffness", (1000.0, 1000.0), "N/rad", "initial Cf, Cr, within ekf.stiffness_bounds (used "
+            "from the next ~/reset)", *STIFFNESS_RANGE, read_only=False),
     _floats("ekf.initial_covariance", (1.0e-2, 1.0e-2, 4.0, 4.0), "state units^2",
-            "diag P0 for vy, r, Cf, Cr in the units of the state (used from the next ~/reset)", read_only=False),
+            "diag P0 for vy, r, Cf, Cr in the units of the state (used from the next ~/reset)", 0.0, 1.0e10,
+            read_only=False),
     _float("ekf.initial_heading_covariance", 1.0e-2, "rad^2", "P0 of the heading state (used from the next "
-           "~/reset)", read_only=False),
+           "~/reset)", 0.0, 100.0, read_only=False),
     # filter limits
     _float("ekf.min_speed", 0.3, "m/s", "below it, no stiffness update", 0.0, 20.0),
-    _floats("ekf.stiffness_bounds", (50.0, 1.0e6), "N/rad", "lower and upper clamp of Cf, Cr"),
-    _float("ekf.gate_threshold", 25.0, "", "Mahalanobis d^2 above which an update is gated"),
+    _floats("ekf.stiffness_bounds", (50.0, 1.0e6), "N/rad", "lower and upper clamp of Cf, Cr", *STIFFNESS_RANGE),
+    _float("ekf.gate_threshold", 25.0, "", "Mahalanobis d^2 above which an update is gated", 1.0e-3, 1.0e6),
     _int("ekf.max_gated", 5, "this many consecutive gated epochs re-initialise the motion states (never force "
          "a stiffness update)", 1, 1000),
     _float("ekf.max_interval", 2.0, "s", "a longer GNSS gap re-initialises the motion states", 0.001, 3600.0),
@@ -268,6 +284,10 @@ def is_ros_builtin(key: str) -> bool:
 
 def unknown_key_message(key: str) -> str:
     """One line naming an unknown key, with the nearest known keys (or the known ones of its namespace)."""
+    group = [k.partition(".")[2] for k in PARAMS if k.startswith(key + ".")]
+    if group:  # e.g. ``ekf: [1, 2]``: a value (a list) where a mapping of parameters belongs
+        return (f"{key} is a group of parameters, not a value: write it as a mapping "
+                f"({key}: {{{group[0]}: ...}}; known {key}.*: {', '.join(group)})")
     close = difflib.get_close_matches(key, PARAMS, n=3, cutoff=0.8)
     if close:
         return f"{key} is not a known parameter (did you mean {' or '.join(close)}?)"

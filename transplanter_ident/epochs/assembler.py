@@ -61,6 +61,8 @@ from transplanter_ident.epochs.steering_line import interval_line
 STAMP_EPSILON = 1.0e-6
 #: consecutive epochs beyond a physical limit after which the latest sample becomes the new start
 REANCHOR_AFTER = 2
+#: the most steering samples kept, whatever their rate (the buffer is also trimmed by time): 10 s at 2 kHz
+MAX_STEERING_SAMPLES = 20_000
 
 
 @dataclass(frozen=True)
@@ -134,7 +136,7 @@ class EpochAssembler:
         self.rejections: list[Rejection] = []
         self._pairer = GnssPairer(settings.match_tolerance)
         self._guard = StampGuard(settings.max_stamp_jump)
-        self._steering: deque[tuple[float, float]] = deque()
+        self._steering: deque[tuple[float, float]] = deque(maxlen=MAX_STEERING_SAMPLES)
         self._last_steering_stamp = -math.inf
         self._pending: deque[tuple[float, float, float, float]] = deque()  # paired GNSS (t, vx_ant, vy_ant, yaw)
         self.uncovered_epochs = 0  # epochs formed before the steering covered their interval

@@ -1,8 +1,9 @@
-"""Windows over time for the diagnostics: counts, RMS, latency percentiles, log throttling."""
+"""Windows over time for the diagnostics: counts, RMS, latency percentiles, log throttling (bounded)."""
 
 from __future__ import annotations
 
 import math
+import re
 from collections import Counter, deque
 from collections.abc import Iterable
 
@@ -97,13 +98,34 @@ def percentile(values: Iterable[float], q: float) -> float:
     return data[low] + (data[high] - data[low]) * (pos - low)
 
 
-class Throttle:
-    """Allow one log line per key every ``period`` seconds; counts what was suppressed."""
+#: numbers in a message (incl. nan, inf): what varies between rejections of one class
+_NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|\b(?:nan|inf(?:inity)?)\b", re.IGNORECASE)
 
-    def __init__(self, period: float = 5.0) -> None:
+
+def reason_class(reason: str) -> str:
+    """A message with its numbers replaced by ``#``: "|0.812| rad beyond ..." and "|0.9| rad beyond ..." are one class.
+
+    Log throttling is keyed by this, not by the text: keyed by the text, rejections that quote their
+    values made one throttle entry each (101 MB/h of node memory, issue #14).
+    """
+    return _NUMBER.sub("#", reason)
+
+
+class Throttle:
+    """Allow one log line per key every ``period`` seconds; counts what was suppressed.
+
+    Holds at most ``max_keys`` keys (the least recently logged one is forgotten first), so its
+    memory is bounded whatever the keys are.
+    """
+
+    def __init__(self, period: float = 5.0, max_keys: int = 256) -> None:
         self.period = period
-        self._last: dict[object, float] = {}
+        self.max_keys = max_keys
+        self._last: dict[object, float] = {}  # in the order of the last logged line, oldest first
         self._suppressed: Counter = Counter()
+
+    def __len__(self) -> int:
+        return len(self._last)
 
     def allow(self, key: object, now: float) -> tuple[bool, int]:
         """(log now?, how many were suppressed since the last line for this key)."""
@@ -111,5 +133,10 @@ class Throttle:
         if last is not None and now - last < self.period:
             self._suppressed[key] += 1
             return False, 0
+        self._last.pop(key, None)
+        while len(self._last) >= self.max_keys:
+            oldest = next(iter(self._last))
+            del self._last[oldest]
+            self._suppressed.pop(oldest, None)
         self._last[key] = now
         return True, self._suppressed.pop(key, 0)

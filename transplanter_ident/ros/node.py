@@ -56,9 +56,10 @@ from transplanter_ident.ekf.joint_ekf import Estimate, JointEKF
 from transplanter_ident.ekf.persistence import Keeper, LearnedState, default_path
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler
 from transplanter_ident.epochs.epoch import Epoch, Rejection
-from transplanter_ident.evaluation.health import HealthMonitor, should_publish
+from transplanter_ident.evaluation.health import HealthMonitor, HealthReport, should_publish
 from transplanter_ident.evaluation.validity import monitor_for, sample_of
-from transplanter_ident.evaluation.windows import Throttle
+from transplanter_ident.evaluation.windows import Throttle, reason_class
+from transplanter_ident.files import OptionalOutput
 from transplanter_ident.ros import adapters
 from transplanter_ident.ros.parameters import (
     NodeSettings,
@@ -68,8 +69,10 @@ from transplanter_ident.ros.parameters import (
     start_values,
     validate,
 )
+from transplanter_ident.ros.startup import optional_output_report
 
 NODE_NAME = "estimator"
+SHUTDOWN_ACK_TIMEOUT = 0.2  # s per output publisher at a clean stop, for reliable subscribers to take the last epoch
 
 
 class EstimatorNode(Node):
@@ -92,9 +95,10 @@ class EstimatorNode(Node):
         self._restore_learned_state()
         self._learned: LearnedState | None = None  # the latest valid parameter states, to be saved
         self._throttle = Throttle(5.0)
+        self._output_warned = False
         self._joint = params.steering.joint_name
         latency_path = self._settings.latency_log
-        self._latency_log = open(latency_path, "a", encoding="utf-8") if latency_path else None  # noqa: SIM115
+        self._latency_log = OptionalOutput(latency_path) if latency_path else None  # an I/O error disables it
         self._outputs = adapters.OutputMessages(self._settings.frame_id)
         self._create_publishers()
         self._input_types = self._create_subscriptions()  # (role, resolved topic, 'pkg/msg/Type')
@@ -255,7 +259,7 @@ class EstimatorNode(Node):
     def _reject(self, rejection: Rejection) -> None:
         self._health.on_rejection(rejection, time.monotonic())
         topic = self._topics.get(rejection.topic, "GNSS epoch")
-        key = rejection.reason if rejection.kind == "other" else rejection.kind  # bounded: kinds, not texts
+        key = reason_class(rejection.reason) if rejection.kind == "other" else rejection.kind  # bounded
         self._warn((rejection.topic, key),
                    f"{rejection.topic} ({topic}) sample at t={rejection.stamp:.3f} rejected: {rejection.reason}")
 
@@ -270,11 +274,22 @@ class EstimatorNode(Node):
     def _publish_diagnostics(self) -> None:
         self._save_learned_state()
         self._check_publisher_types()
-        reports = self._health.report(time.monotonic())
+        reports = self._health.report(time.monotonic()) + self._output_reports()
         self._pub_diagnostics.publish(adapters.diagnostic_array(self.get_clock().now().to_msg(), reports,
                                                                 self.get_fully_qualified_name()))
         if self._latency_log is not None:
             self._latency_log.flush()
+
+    def _output_reports(self) -> list[HealthReport]:
+        """A status line for each optional output (the latency log): WARN once an I/O error disabled it."""
+        log = self._latency_log
+        if log is None:
+            return []
+        report = optional_output_report(f"{self.get_name()}: latency log", log)
+        if log.error is not None and not self._output_warned:
+            self._output_warned = True
+            self.get_logger().warning(report.message)
+        return [report]
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         self._restart()
@@ -350,10 +365,14 @@ class EstimatorNode(Node):
         self.get_logger().info(f"parameters set: {changed}")
 
     def destroy_node(self) -> None:
+        """Close the latency log; give reliable subscribers a moment to take the last epoch, then destroy."""
         self._save_learned_state(force=True)
         if self._latency_log is not None:
             self._latency_log.close()
             self._latency_log = None
+        if self.context.ok():
+            for publisher in self._publishers_out:
+                publisher.wait_for_all_acked(Duration(seconds=SHUTDOWN_ACK_TIMEOUT))
         super().destroy_node()
 
 
