@@ -1,4 +1,4 @@
-"""Load, validate and write the estimator's ROS 2 parameters YAML (DESIGN.md section 3).
+"""Load and validate the estimator's ROS 2 parameters YAML (DESIGN.md section 3; writing: params_writer).
 
 The file format is the one `--params-file` takes::
 
@@ -17,7 +17,6 @@ file's ``/**`` sets a key that an earlier file set under the node name.)
 Which keys exist, their types, ranges and choices come from the schema (:mod:`.schema`): an unknown
 key is an error that names it, whatever its namespace; an integer is accepted where a float is due.
 Every error is a :class:`ParamsError` whose one-line message names the file, the key and the reason.
-This module does not import rclpy.
 """
 
 from __future__ import annotations
