@@ -32,6 +32,7 @@ import argparse
 import contextlib
 import math
 import os
+import re
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from functools import partial
@@ -59,7 +60,7 @@ from transplanter_ident.tuning.tune import tune as tune  # one bag, in-process (
 
 MIN_EPOCHS = 50
 #: an existing ``--report`` folder holding only such files (an earlier report) may be replaced
-REPORT_SUFFIXES = (".png", ".txt")
+REPORT_NAMES = re.compile(r"fig\d[\w.-]*\.png|report\.txt|leave_one_out\.txt")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -301,7 +302,7 @@ def check_report_path(path: str) -> None:
     """CliError if ``--report DIR`` cannot be written, or would replace something that is not a report."""
     target = Path(path)
     parent = target.parent if str(target.parent) else Path(".")
-    if target.exists() and (not target.is_dir() or any(p.suffix not in REPORT_SUFFIXES for p in target.iterdir())):
+    if target.exists() and (not target.is_dir() or any(not REPORT_NAMES.fullmatch(p.name) for p in target.iterdir())):
         raise CliError(f"{target}: exists and is not an earlier report; choose a new folder for --report")
     if not parent.is_dir():
         raise CliError(f"{target}: directory {parent} does not exist")
