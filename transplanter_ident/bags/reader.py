@@ -43,6 +43,7 @@ from transplanter_ident.bags.messages import (
 from transplanter_ident.epochs import checks
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
 from transplanter_ident.epochs.epoch import EpochArrays, Rejection
+from transplanter_ident.evaluation.windows import reason_class
 from transplanter_ident.files import Progress, one_line
 
 
@@ -367,11 +368,18 @@ def read_truth(path: str | Path) -> Truth | None:
 
 
 def summarize_rejections(rejections: Sequence[Rejection]) -> list[tuple[str, str, int]]:
-    """(topic, reason, count), most frequent first; per-sample numbers in reasons are merged (by kind)."""
+    """(topic, reason, count), most frequent first; per-sample numbers in reasons are merged.
+
+    Reasons of one class (the same text but for its numbers, :func:`reason_class`) count together,
+    under the first text seen: a bag of 10^5 distinct quaternions is one line, not 10^5.
+    """
     counts: Counter[tuple[str, str]] = Counter()
+    first: dict[tuple[str, str], str] = {}
     for rejection in rejections:
         reason = checks.SUMMARY_LABELS.get(rejection.kind, rejection.reason)
         if reason.startswith("|") and "beyond max_steering" in reason:
             reason = "beyond max_steering" + reason.split("beyond max_steering", 1)[1]
-        counts[(rejection.topic, reason)] += 1
-    return [(topic, reason, n) for (topic, reason), n in counts.most_common()]
+        key = (rejection.topic, reason_class(reason))
+        first.setdefault(key, reason)
+        counts[key] += 1
+    return [(topic, first[(topic, cls)], n) for (topic, cls), n in counts.most_common()]

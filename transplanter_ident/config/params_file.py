@@ -211,7 +211,7 @@ def _check_range(row: Param, number: float, value: Any) -> None:
         return
     name = f"{row.key} entries" if row.kind == "float_list" else row.key
     span = f"[{row.low:g}, {row.high:g}]"
-    if not math.isfinite(number):
+    if isinstance(number, float) and not math.isfinite(number):  # an int may be too large for a float
         need = f"must be finite numbers within {span}" if row.kind == "float_list" else f"must be finite, within {span}"
     elif number < row.low:
         need = f"must be >= {row.low:g} (within {span})"
