@@ -113,12 +113,13 @@ def candidate_matrices(positions: np.ndarray, config: EstimatorConfig) -> tuple[
     return np.ascontiguousarray(q), np.ascontiguousarray(values[:, 4:6])
 
 
+# One entry per state size: numba caches only module-level functions (see ekf/entries.py).
 @parallel_entry_kernel
 def _batch_yaw_rate(epochs, x0, p0, vehicle, settings, qs, rs, kind):  # noqa: ANN001, ANN202
     values = np.empty(qs.shape[0])
     for i in numba.prange(qs.shape[0]):
-        values[i] = objective_yaw_rate(epochs.copy(), x0.copy(), p0.copy(), np.zeros(N_MODEL), np.zeros(N_MEMO), vehicle.copy(),
-                                settings.copy(), qs[i].copy(), rs[i].copy(), kind)
+        values[i] = objective_yaw_rate(epochs.copy(), x0.copy(), p0.copy(), np.zeros(N_MODEL), np.zeros(N_MEMO),
+                                vehicle.copy(), settings.copy(), qs[i].copy(), rs[i].copy(), kind)
     return values
 
 
@@ -126,8 +127,8 @@ def _batch_yaw_rate(epochs, x0, p0, vehicle, settings, qs, rs, kind):  # noqa: A
 def _batch_heading(epochs, x0, p0, vehicle, settings, qs, rs, kind):  # noqa: ANN001, ANN202
     values = np.empty(qs.shape[0])
     for i in numba.prange(qs.shape[0]):
-        values[i] = objective_heading(epochs.copy(), x0.copy(), p0.copy(), np.zeros(N_MODEL), np.zeros(N_MEMO), vehicle.copy(),
-                                settings.copy(), qs[i].copy(), rs[i].copy(), kind)
+        values[i] = objective_heading(epochs.copy(), x0.copy(), p0.copy(), np.zeros(N_MODEL), np.zeros(N_MEMO),
+                                vehicle.copy(), settings.copy(), qs[i].copy(), rs[i].copy(), kind)
     return values
 
 
