@@ -93,7 +93,8 @@ def test_cli_writes_a_layerable_yaml_with_header(tuned_run) -> None:  # noqa: AN
         assert any(word in line for line in header), word
     flat = read_params_file(yaml_path)
     assert set(flat) == {"ekf.discretization", "ekf.stiffness_state", "ekf.measurement", "ekf.process_noise",
-                         "ekf.measurement_noise", "ekf.heading_process_noise"}
+                         "ekf.measurement_noise", "ekf.heading_process_noise", "ekf.process_noise_units"}
+    assert flat["ekf.process_noise_units"] == "per_second"  # the units the Q was tuned in travel with it
     assert (flat["ekf.discretization"], flat["ekf.stiffness_state"], flat["ekf.measurement"]) == (
         "exact", "log", "heading")
     assert all(isinstance(v, float) for v in [*flat["ekf.process_noise"], *flat["ekf.measurement_noise"]])

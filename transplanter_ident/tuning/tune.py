@@ -176,7 +176,10 @@ def tuned_parameters(config: EstimatorConfig) -> dict[str, Any]:
         "ekf.measurement": options.measurement,
         "ekf.process_noise": [float(v) for v in noise.process_noise],
         "ekf.measurement_noise": [float(v) for v in noise.measurement_noise],
+        "ekf.process_noise_units": options.process_noise_units,  # Q per second (or per step of the file)
     }
+    if options.process_noise_units == "per_step":
+        flat["ekf.process_noise_step"] = float(options.process_noise_step)
     if options.measurement == "heading":
         flat["ekf.heading_process_noise"] = float(noise.heading_process_noise)
     return flat
