@@ -40,7 +40,7 @@ from transplanter_ident.ekf.layout import (
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
 
 #: s of data between two evaluations of the window checks
-RECHECK = 0.5
+RECHECK = 1.0
 #: statuses whose innovation is a proper one-step prediction error
 PREDICTED = frozenset({StepStatus.UPDATED, StepStatus.NONLINEAR, StepStatus.GATED})
 
