@@ -390,3 +390,19 @@ def test_heading_quaternions_are_checked_before_conversion() -> None:
     assembler.add_velocity(2.0, 1.0, 0.0)
     assembler.add_heading_quaternion(2.0, 0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))
     assert assembler.drain_rejections() == []
+
+
+def test_epochs_formed_before_the_steering_covered_them_are_counted() -> None:
+    """An epoch formed before a steering sample at or after its end arrived is counted.
+
+    It goes once the next GNSS epoch has come; a clean stream counts none.
+    """
+    times, east, north, yaw, _ = circle(duration=2.0)
+    clean = EpochAssembler(AssemblerSettings())
+    assemble(clean, motion_samples(times, east, north, yaw))
+    assert clean.uncovered_epochs == 0
+    short = EpochAssembler(AssemblerSettings())  # the steering stops after t = 1.0 s
+    epochs = assemble(short, [s for s in motion_samples(times, east, north, yaw)
+                              if not (s[0] == "steering" and s[1] > 1.0 + 1e-9)])
+    assert short.uncovered_epochs == 4  # 1.2, 1.4, 1.6 and 1.8: each went when the next GNSS epoch arrived
+    assert [round(e.t, 1) for e in epochs][-2:] == [1.2, 1.4]  # the rest had no recent steering at all

@@ -337,6 +337,9 @@ def _input_notes(assembler: EpochAssembler, rejections: Sequence[Rejection]) -> 
                      f"{1e3 * abs(stats.last_offset):.0f} ms {late} the velocity): if they describe one receiver "
                      f"epoch, set gnss.pairing_tolerance above {1e3 * stats.largest_miss:.0f} ms")
         notes.append(note)
+    if assembler.uncovered_epochs:
+        notes.append(f"{assembler.uncovered_epochs} epoch(s) were formed before a steering sample at or after their "
+                     "end arrived (the last steering value was held over the end of the interval)")
     resyncs = [r for r in rejections if r.kind == checks.RESYNC and r.topic != "epoch"]
     if resyncs:
         notes.append(f"{len(resyncs)} input time step(s) re-synchronised; the first: {resyncs[0].topic} at "

@@ -23,7 +23,6 @@ import enum
 X_VY, X_R, X_PSI = 0, 1, 2
 HEADING_STATES, YAW_RATE_STATES = 6, 5  # [vy, r, psi, th_f, th_r, b] and [vy, r, th_f, th_r, b]
 N_MOTION_HEADING, N_MOTION_YAW_RATE = 3, 2
-N_PARAMETER_STATES = 3  # theta_f, theta_r, steering offset b (random walks)
 X_THETA_F, X_THETA_R, X_OFFSET = -3, -2, -1  # the parameter states, counted from the end
 PARAMETER_STATES = [X_THETA_F, X_THETA_R, X_OFFSET]
 

@@ -126,9 +126,9 @@ class EpochAssembler:
     Feed samples in arrival order; each ``add_*`` returns the epochs completed by that sample
     and records rejected samples in :attr:`rejections` (drained by the caller). An epoch waits
     until the steering covers its interval (see the module docstring), so online (node) and
-    offline (bag order) results agree whichever stream arrives first. :meth:`finish` emits
-    what still waits at the end of a recording. :attr:`pairing` counts paired and unpaired
-    GNSS samples (for the diagnostics).
+    offline (bag order) results agree whichever stream arrives first. :attr:`pairing` counts
+    paired and unpaired GNSS samples, :attr:`uncovered_epochs` the epochs formed before the
+    steering covered them (for the diagnostics).
     """
 
     def __init__(self, settings: AssemblerSettings) -> None:
@@ -209,11 +209,7 @@ class EpochAssembler:
         self._steering.append((stamp, angle))
         while len(self._steering) > 2 and self._steering[0][0] < stamp - self.settings.steering_buffer:
             self._steering.popleft()
-        return self._flush(force=False)
-
-    def finish(self) -> list[Epoch]:
-        """Emit the epochs still waiting for steering (end of a recording)."""
-        return self._flush(force=True)
+        return self._flush()
 
     # ------------------------------------------------------------------ checks
 
@@ -283,7 +279,7 @@ class EpochAssembler:
             else:
                 vx_ant, vy_ant = body_velocity(a, b, -self.settings.body_velocity_rotation)
             self._pending.append((tv - self.settings.gnss_delay, vx_ant, vy_ant, yaw))
-        return self._flush(force=False) if pairs else []
+        return self._flush() if pairs else []
 
     def _reject_unpaired(self, sample: Unpaired) -> None:
         other = "heading" if sample.role == "velocity" else "velocity"
@@ -296,16 +292,17 @@ class EpochAssembler:
         self._reject(sample.role, sample.stamp, f"no {other} within gnss.pairing_tolerance {1e3 * tolerance:g} ms "
                      f"({nearest})", checks.UNPAIRED)
 
-    def _flush(self, *, force: bool) -> list[Epoch]:
-        """Form the waiting epochs whose interval the steering covers (all of them if ``force``).
+    def _flush(self) -> list[Epoch]:
+        """Form the waiting epochs whose interval the steering covers.
 
-        An epoch also goes once a later one waits behind it: it has waited a whole GNSS period.
+        An epoch also goes once a later one waits behind it: it has waited a whole GNSS period
+        (counted in :attr:`uncovered_epochs`).
         """
         epochs: list[Epoch] = []
         while self._pending:
             t = self._pending[0][0]
             covered = self._last_steering_stamp >= t - STAMP_EPSILON
-            if not (covered or force or len(self._pending) > 1):
+            if not (covered or len(self._pending) > 1):
                 break
             if not covered and self._previous is not None:
                 self.uncovered_epochs += 1

@@ -135,6 +135,7 @@ class _FilterState:
     last_epoch_rejection: str = ""
     epoch_kinds: Counter = field(default_factory=Counter)
     unpublished: int = 0  # outputs withheld because a value was not finite
+    uncovered: int = 0  # epochs formed before the steering covered their interval (assembler)
     validity: Decision = field(default_factory=lambda: Decision(False, ("no estimate yet",), False))
 
 
@@ -235,6 +236,10 @@ class HealthMonitor:
         level = ERROR if decision.hard else WARN
         return HealthReport(name, level, "not valid: " + ("; ".join(decision.reasons) or "waiting (hysteresis)"),
                             values)
+    def on_uncovered(self, count: int) -> None:
+        """How many epochs the assembler formed before the steering covered their interval."""
+        self._filter.uncovered = count
+
     def on_pairing(self, stats: PairingStats, now: float) -> None:
         """The assembler's running counts of paired and unpaired GNSS samples."""
         self.pairing.update(stats, now)
@@ -310,7 +315,8 @@ class HealthMonitor:
         values += (("gated_recent", str(counts["gated"])), ("rejected_recent", str(counts["rejected"])),
                    ("diverged_recent", str(counts["diverged"])), ("epochs_dropped", str(f.epoch_rejected)),
                    ("epochs_dropped_recent", str(counts["epoch"])), ("last_epoch_drop", f.last_epoch_rejection),
-                   ("outputs_withheld", str(f.unpublished))) + kind_values(f.epoch_kinds)
+                   ("outputs_withheld", str(f.unpublished)),
+                   ("epochs_steering_uncovered", str(f.uncovered))) + kind_values(f.epoch_kinds)
         name = f"{self.name}: measurements"
         window = f"in the last {th.window:g} s"
         if counts["diverged"]:

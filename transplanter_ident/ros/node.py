@@ -228,6 +228,7 @@ class EstimatorNode(Node):
         for rejection in self._assembler.drain_rejections():
             self._reject(rejection)
         self._health.on_pairing(self._assembler.pairing, time.monotonic())
+        self._health.on_uncovered(self._assembler.uncovered_epochs)
         for epoch in epochs:
             estimate = self._ekf.step(epoch)
             decision = self._validity.step(sample_of(epoch, estimate.row))
