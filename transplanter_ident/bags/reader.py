@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from rosbags.rosbag2 import Reader
 
+from transplanter_ident.bags.batch_read import message_samples, read_batch
 from transplanter_ident.bags.errors import BagError
 from transplanter_ident.bags.messages import (
     _DECODE_ERRORS,
@@ -36,12 +37,11 @@ from transplanter_ident.bags.messages import (
     Extractor,
     _from_twist_truth,
     _from_vector3,
-    _Unusable,
     normalize_msgtype,
-    seconds,
 )
 from transplanter_ident.epochs import checks
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
+from transplanter_ident.epochs.batch import BatchResult, SampleStream, assemble_batch, stream_samples
 from transplanter_ident.epochs.epoch import EpochArrays, Rejection
 from transplanter_ident.evaluation.windows import reason_class
 from transplanter_ident.files import Progress, one_line
@@ -201,14 +201,17 @@ class _Scan:
         self.truth_rows: dict[str, list[tuple[float, tuple[float, ...]]]] = {"truth_stiffness": [],
                                                                             "truth_velocity": []}
 
+    def _table(self, reader: Reader) -> _Table:
+        table = _select(self.path, reader, self.params)
+        if self.want_truth:
+            table.update(_select_truth(reader, self.notes))
+        return table
+
     def samples(self) -> Iterator[tuple[str, float, tuple[float, ...]]]:
         joint = self.params.steering.joint_name
-        deserialize = TYPESTORE.deserialize_cdr
         counts, truth_rows = self.counts, self.truth_rows
         with open_reader(self.path) as reader:
-            table = _select(self.path, reader, self.params)
-            if self.want_truth:
-                table.update(_select_truth(reader, self.notes))
+            table = self._table(reader)
             connections = [c for c in reader.connections if c.id in table]
             self.connections = connections
             read = self.read_per_connection
@@ -220,23 +223,9 @@ class _Scan:
                 if n >= next_report:
                     progress.update(n)
                     next_report = progress.next_at
-                entries = table[conn.id]
                 read[conn.id] += 1
-                try:
-                    msg = deserialize(data, entries[0][2])
-                except _DECODE_ERRORS:
-                    reason = f"undecodable {conn.msgtype} message"
-                    for role, *_ in entries:
-                        self.rejections.append(Rejection(role.removeprefix("truth_"), seconds(log_ns), reason,
-                                                         checks.UNDECODABLE))
-                    continue
-                for role, name, _msgtype, extract in entries:
-                    try:
-                        stamp, values = extract(msg, log_ns, joint)
-                    except _Unusable as exc:
-                        self.rejections.append(Rejection(role.removeprefix("truth_"), seconds(log_ns), str(exc),
-                                                         exc.kind))
-                        continue
+                for _, role, name, stamp, values in message_samples(table[conn.id], conn, log_ns, data, joint,
+                                                                    self.rejections):
                     counts[role] += 1
                     if role in truth_rows:
                         truth_rows[role].append((stamp, values))
@@ -244,6 +233,11 @@ class _Scan:
                         yield name, stamp, values
             if progress is not None:
                 progress.done()
+
+    def batch(self) -> list[SampleStream] | None:
+        """The whole pass at once, decoded in batches (:mod:`.batch_read`); None: use :meth:`samples`."""
+        with open_reader(self.path) as reader:
+            return read_batch(self, reader, self._table(reader))
 
     def shortfall(self) -> list[str]:
         """Per topic whose count read differs from the bag's own count: "/gnss/vel: 82 of 601"."""
@@ -255,16 +249,23 @@ class _Scan:
         return [f"{topic}: {read[topic]} of {expected[topic]}" for topic in expected if read[topic] != expected[topic]]
 
 
-def _build_truth(rows: dict[str, list[tuple[float, tuple[float, ...]]]]) -> Truth | None:
-    stiffness = sorted(rows["truth_stiffness"], key=lambda row: row[0])
-    if not stiffness:
+def _truth_columns(rows: Any, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps, values) sorted by stamp (stable) from [(stamp, values)] rows or a (stamps, values) pair."""
+    if isinstance(rows, tuple):
+        stamps, values = rows
+    else:
+        stamps = np.array([row[0] for row in rows], dtype=np.float64)
+        values = np.array([row[1] for row in rows], dtype=np.float64).reshape(-1, width)
+    order = np.argsort(stamps, kind="stable")
+    return stamps[order], values[order]
+
+
+def _build_truth(rows: dict[str, Any]) -> Truth | None:
+    t, stiff = _truth_columns(rows["truth_stiffness"], 3)
+    if not len(t):
         return None
-    t = np.array([row[0] for row in stiffness])
-    stiff = np.array([row[1] for row in stiffness])
-    velocity = sorted(rows["truth_velocity"], key=lambda row: row[0])
-    if velocity:
-        tv = np.array([row[0] for row in velocity])
-        vel = np.array([row[1] for row in velocity])
+    tv, vel = _truth_columns(rows["truth_velocity"], 3)
+    if len(tv):
         vx, vy, r = (np.interp(t, tv, vel[:, i]) for i in range(3))
     else:
         vx = vy = r = np.full(len(t), np.nan)
@@ -299,8 +300,16 @@ def read_bag(path: str | Path, params: Any, *, truth: bool = True, progress: boo
     the difference is a note.
     """
     scan = _Scan(path, params, truth=truth, progress=progress)
-    assembler = EpochAssembler(AssemblerSettings.from_params(params))
-    epochs = assemble(assembler, scan.samples())
+    settings = AssemblerSettings.from_params(params)
+    streams = scan.batch()
+    assembler = assemble_batch(settings, streams) if streams is not None else None
+    if assembler is not None:
+        epochs = assembler.epochs
+    else:
+        assembler = EpochAssembler(settings)
+        if streams is None:  # read again, streaming
+            scan = _Scan(path, params, truth=truth, progress=progress)
+        epochs = EpochArrays(assemble(assembler, scan.samples() if streams is None else stream_samples(streams)))
     missing = scan.shortfall()
     if missing and not allow_partial:
         raise BagError(f"{path}: messages read differ from the bag's own counts ({'; '.join(missing)}): a corrupt "
@@ -310,7 +319,7 @@ def read_bag(path: str | Path, params: Any, *, truth: bool = True, progress: boo
     rejections = scan.rejections + assembler.drain_rejections()
     rejections.sort(key=lambda r: r.stamp)
     counts = {role: scan.counts.get(role, 0) for role in ROLES}
-    if not epochs:
+    if not len(epochs):
         summary = ", ".join(f"{counts[r]} {r}" for r in ROLES)
         top = summarize_rejections(rejections)[:1]
         why = f"; most common rejection: {top[0][0]}: {top[0][1]} ({top[0][2]}x)" if top else ""
@@ -320,10 +329,10 @@ def read_bag(path: str | Path, params: Any, *, truth: bool = True, progress: boo
     if truth:
         counts["truth"] = scan.counts.get("truth_stiffness", 0)
     notes = scan.notes + _input_notes(assembler, rejections)
-    return BagData(Path(path), EpochArrays(epochs), rejections, truth_data, counts, notes)
+    return BagData(Path(path), epochs, rejections, truth_data, counts, notes)
 
 
-def _input_notes(assembler: EpochAssembler, rejections: Sequence[Rejection]) -> list[str]:
+def _input_notes(assembler: EpochAssembler | BatchResult, rejections: Sequence[Rejection]) -> list[str]:
     """Plain-language notes on velocity/heading that did not pair and on time steps (replay prints them)."""
     notes = []
     stats = assembler.pairing

@@ -39,6 +39,15 @@ class EpochArrays:
         for i, name in enumerate(names):
             setattr(self, name, self._data[:, i])
 
+    @classmethod
+    def from_rows(cls, rows: np.ndarray) -> EpochArrays:
+        """From an n x (number of Epoch fields) array, columns in the field order (the batch assembler)."""
+        arrays = cls()
+        arrays._data = np.ascontiguousarray(rows, dtype=np.float64).reshape(-1, len(fields(Epoch)))
+        for i, f in enumerate(fields(Epoch)):
+            setattr(arrays, f.name, arrays._data[:, i])
+        return arrays
+
     def __len__(self) -> int:
         return self._data.shape[0]
 

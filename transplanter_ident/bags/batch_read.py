@@ -1,0 +1,120 @@
+"""One pass over a bag's input and truth connections, decoded in batches (replay's fast path).
+
+:func:`read_batch` reads every wanted message's bytes once, decodes each connection's messages in
+groups (:mod:`.batch_decode`) and sends the rest through :func:`message_samples`, the per-message
+decoding that :meth:`~.reader._Scan.samples` streams. It fills the scan's counts, rejections (in
+message order) and ground truth exactly as the streaming pass does, and returns the input samples
+as :class:`~transplanter_ident.epochs.batch.SampleStream` columns keyed by arrival order.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from transplanter_ident.bags.batch_decode import decode_connection, width_of
+from transplanter_ident.bags.messages import _DECODE_ERRORS, TYPESTORE, _Unusable, seconds
+from transplanter_ident.epochs import checks
+from transplanter_ident.epochs.batch import SampleStream
+from transplanter_ident.epochs.epoch import Rejection
+from transplanter_ident.files import Progress
+
+#: (entry position, role, assembler input, stamp, values) of one decoded message
+Sample = tuple[int, str, str, float, tuple[float, ...]]
+
+
+def message_samples(entries: list, conn: Any, log_ns: int, data: bytes, joint: str,
+                    rejections: list[Rejection]) -> list[Sample]:
+    """Decode one message for each of its connection's entries; append what cannot be used to ``rejections``."""
+    try:
+        msg = TYPESTORE.deserialize_cdr(data, entries[0][2])
+    except _DECODE_ERRORS:
+        reason = f"undecodable {conn.msgtype} message"
+        for role, *_ in entries:
+            rejections.append(Rejection(role.removeprefix("truth_"), seconds(log_ns), reason, checks.UNDECODABLE))
+        return []
+    out = []
+    for position, (role, name, _msgtype, extract) in enumerate(entries):
+        try:
+            stamp, values = extract(msg, log_ns, joint)
+        except _Unusable as exc:
+            rejections.append(Rejection(role.removeprefix("truth_"), seconds(log_ns), str(exc), exc.kind))
+            continue
+        out.append((position, role, name, stamp, values))
+    return out
+
+
+def _raw(scan: Any, reader: Any, connections: list) -> tuple[np.ndarray, np.ndarray, list[bytes]] | None:
+    """(connection id, log ns, bytes) of every message, in log-time order; None if a log time overflows int64."""
+    ids, logs, datas = [], [], []
+    progress = Progress(sum(c.msgcount for c in connections), f"reading {scan.path}") if scan.progress else None
+    next_report = progress.next_at if progress is not None else math.inf
+    for n, (conn, log_ns, data) in enumerate(reader.messages(connections=connections), 1):
+        if n >= next_report:
+            progress.update(n)
+            next_report = progress.next_at
+        ids.append(conn.id)
+        logs.append(log_ns)
+        datas.append(data)
+    if progress is not None:
+        progress.done()
+    try:
+        return np.array(ids, dtype=np.int64), np.array(logs, dtype=np.int64), datas
+    except OverflowError:
+        return None
+
+
+def read_batch(scan: Any, reader: Any, table: dict) -> list[SampleStream] | None:
+    """Fill ``scan`` (counts, rejections, truth rows) and return the input samples; None: use the stream instead."""
+    connections = [c for c in reader.connections if c.id in table]
+    scan.connections = connections
+    raw = _raw(scan, reader, connections)
+    if raw is None:
+        return None
+    ids, logs, datas = raw
+    joint = scan.params.steering.joint_name
+    columns: dict[tuple[str, str, int], list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
+    slow_messages: list[np.ndarray] = []
+    for conn in connections:
+        members = np.flatnonzero(ids == conn.id)
+        scan.read_per_connection[conn.id] += len(members)
+        entries = table[conn.id]
+        subset = [datas[i] for i in members.tolist()]
+        decoded = [decode_connection(msgtype, role, extract, joint, members, logs[members], subset,
+                                     width_of(msgtype, role))
+                   for role, _name, msgtype, extract in entries]
+        slow = np.unique(np.concatenate([d.slow for d in decoded]))
+        slow_messages.append(slow)
+        for position, ((role, name, _msgtype, _extract), d) in enumerate(zip(entries, decoded, strict=True)):
+            keep = ~np.isin(d.index, slow)
+            columns.setdefault((role, name, d.values.shape[1]), []).append(
+                (d.index[keep] * 2 + position, d.stamps[keep], d.values[keep]))
+    _slow_path(scan, table, ids, logs, datas, np.sort(np.concatenate(slow_messages)), columns, joint)
+    streams = []
+    for (role, name, width), parts in columns.items():
+        keys = np.concatenate([p[0] for p in parts])
+        stamps = np.concatenate([p[1] for p in parts])
+        values = np.concatenate([p[2].reshape(-1, width) for p in parts])
+        order = np.argsort(keys, kind="stable")
+        scan.counts[role] += len(keys)
+        if role in scan.truth_rows:
+            scan.truth_rows[role] = (stamps[order], values[order])
+        else:
+            streams.append(SampleStream(name, keys[order], stamps[order], values[order]))
+    return streams
+
+
+def _slow_path(scan: Any, table: dict, ids: np.ndarray, logs: np.ndarray, datas: list[bytes], slow: np.ndarray,
+               columns: dict, joint: str) -> None:
+    """The messages outside every group, one by one, as the streaming pass decodes them."""
+    by_conn = {c.id: c for c in scan.connections}
+    for i in slow.tolist():
+        conn = by_conn[int(ids[i])]
+        entries = table[conn.id]
+        for position, role, name, stamp, values in message_samples(entries, conn, int(logs[i]), datas[i], joint,
+                                                                   scan.rejections):
+            row = np.array([values], dtype=np.float64).reshape(1, len(values))
+            columns.setdefault((role, name, len(values)), []).append(
+                (np.array([i * 2 + position], dtype=np.int64), np.array([stamp], dtype=np.float64), row))
