@@ -33,7 +33,7 @@ DRIVER = SimBagOptions(velocity_type="twist-cov", heading_type="imu", report_noi
 
 def obvious_noise(configured: tuple[float, float], on: bool, heading: bool,
                   reported: tuple[float, float, float]) -> tuple[float, float]:
-    """The rule written out: with the option, the larger of configured and reported; NaN is no report."""
+    """The rule written out: with the option, the larger of configured and reported (0 or NaN: no report)."""
     if not on:
         return configured
     velocity, heading_variance, yaw_rate_variance = reported
@@ -83,8 +83,7 @@ def test_the_assembler_turns_the_reported_covariance_into_the_epochs_variances()
         epochs += assembler.add_steering(0.2 * k, 0.0)
         epochs += assembler.add_velocity(0.2 * k, 1.0, 0.5, 0.0, 0.0)
         epochs += assembler.add_heading_quaternion(0.2 * k, 0.0, 0.0, 0.0, 1.0)
-    assert epochs and all(math.isnan(e.velocity_variance) and math.isnan(e.heading_variance)
-                          and math.isnan(e.yaw_rate_variance) for e in epochs)
+    assert epochs and all(e.velocity_variance == e.heading_variance == e.yaw_rate_variance == 0.0 for e in epochs)
 
 
 @pytest.mark.parametrize(("heading_type", "msgtype"), [("imu", IMU), ("pose-cov", POSE_COV_STAMPED),

@@ -47,7 +47,7 @@ from transplanter_ident.jit import inline_kernel, sized_kernel
 
 @inline_kernel
 def floored_variance(configured, reported):
-    """The reported variance where it is larger than the configured one (NaN or smaller: configured)."""
+    """The reported variance where it is larger than the configured one (0 = not reported, or smaller: configured)."""
     return reported if reported > configured else configured
 
 

@@ -114,7 +114,7 @@ class AssemblerSettings:
 
 @dataclass
 class _Anchor:
-    """The start of the next interval: time, unwrapped yaw, CG vx, the yaw's reported variance (NaN: none)."""
+    """The start of the next interval: time, unwrapped yaw, CG vx, the yaw's reported variance (0: none)."""
 
     t: float
     yaw: float
@@ -175,10 +175,10 @@ class EpochAssembler:
         """A velocity already in body axes at the antenna (x forward, y left), e.g. a nav_msgs/Odometry twist."""
         return self._add_velocity(stamp, ("body", vx, vy, variance_x, variance_y), (vx, vy), (variance_x, variance_y))
 
-    def add_heading(self, stamp: float, heading: float, variance: float = math.nan) -> list[Epoch]:
+    def add_heading(self, stamp: float, heading: float, variance: float = 0.0) -> list[Epoch]:
         """A GNSS heading sample (ENU yaw, or compass heading for ``ned``) of the heading source, rad.
 
-        ``variance``: its reported variance, rad^2 (NaN or <= 0: not given).
+        ``variance``: its reported variance, rad^2 (0, or not a positive number: not given).
         """
         if not (math.isfinite(stamp) and math.isfinite(heading)):
             return self._reject("heading", stamp, "non-finite value", checks.NON_FINITE)
@@ -192,10 +192,10 @@ class EpochAssembler:
             return self._reject("heading", stamp, "stamp not after the previous heading sample", checks.STAMP_ORDER)
         self._guard.accept("heading", motion_time)
         yaw = heading_to_enu_yaw(heading, self.settings.heading_frame) - self.settings.heading_offset
-        return self._pair("heading", stamp, (yaw, variance if variance > 0.0 else math.nan))
+        return self._pair("heading", stamp, (yaw, variance if variance > 0.0 else 0.0))
 
     def add_heading_quaternion(self, stamp: float, x: float, y: float, z: float, w: float,
-                               variance: float = math.nan) -> list[Epoch]:
+                               variance: float = 0.0) -> list[Epoch]:
         """A GNSS heading given as an orientation quaternion (QuaternionStamped, Imu, Pose, Odometry)."""
         problem = checks.quaternion_problem(x, y, z, w)
         if problem is not None:
@@ -349,7 +349,7 @@ class EpochAssembler:
                      yaw_rate=yaw_rate, steering=steering[0], steering_rate=steering[1],
                      speed=0.5 * (previous.vx + vx), antenna_lateral_velocity=vy_ant,
                      velocity_variance=vy_variance, heading_variance=yaw_variance,
-                     yaw_rate_variance=(previous.yaw_variance + yaw_variance) / (dt * dt))
+                     yaw_rate_variance=_yaw_rate_variance(previous.yaw_variance, yaw_variance, dt))
 
     def _limit_problem(self, yaw_rate: float, vy: float) -> tuple[str, str, str] | None:
         """(topic, reason, kind) when the epoch is beyond the vehicle's yaw-rate or lateral-speed limit."""
@@ -370,6 +370,11 @@ class EpochAssembler:
             return None  # nothing recent, or nothing before the interval's end (never extrapolate back)
         times, values = zip(*samples, strict=True)
         return interval_line(times, values, start, end)
+
+
+def _yaw_rate_variance(start: float, end: float, dt: float) -> float:
+    """Variance of the interval's (end - start) / dt from the two headings' reported variances (0: unknown)."""
+    return (start + end) / (dt * dt) if start > 0.0 and end > 0.0 else 0.0
 
 
 #: sample names of :func:`assemble` -> the assembler method that takes them

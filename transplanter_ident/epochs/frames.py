@@ -55,10 +55,10 @@ def body_velocity(east: float, north: float, yaw: float) -> tuple[float, float]:
 def lateral_variance(variance_first: float, variance_second: float, yaw: float) -> float:
     """Variance of the body-frame vy of :func:`body_velocity` from the two axes' variances (no cross term).
 
-    NaN unless both are given (> 0): a zero covariance is the ROS convention for "unknown".
+    0 (unknown, the ROS convention for a zero covariance) unless both are given (> 0).
     """
     if not (variance_first > 0.0 and variance_second > 0.0):
-        return math.nan
+        return 0.0
     s, c = math.sin(yaw), math.cos(yaw)
     return s * s * variance_first + c * c * variance_second
 

@@ -59,7 +59,7 @@ def _odometry_twist(assembler: EpochAssembler, stamp: float, msg: Odometry) -> l
 def _orientation(field: Callable[[Any], Any], yaw_variance: Callable[[Any], float] | None = None) -> Feeder:
     def feed(assembler: EpochAssembler, stamp: float, msg: Any) -> list[Epoch]:
         q = field(msg)
-        variance = float(yaw_variance(msg)) if yaw_variance is not None else math.nan
+        variance = float(yaw_variance(msg)) if yaw_variance is not None else 0.0
         return assembler.add_heading_quaternion(stamp, q.x, q.y, q.z, q.w, variance)
 
     return feed
