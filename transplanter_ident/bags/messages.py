@@ -9,8 +9,9 @@ The configured velocity, heading and steering topics are read in every accepted 
   NaN entry is a driver's invalid marker); ``nav_msgs/Odometry``: ``velocity_body``, the twist in the
   child (body) frame with its covariance diagonal;
 * heading, ``geometry_msgs/QuaternionStamped``, ``sensor_msgs/Imu``, ``PoseWithCovarianceStamped`` or
-  ``nav_msgs/Odometry``: ``heading_quaternion`` ``(x, y, z, w)`` of the orientation (the assembler checks
-  its norm and takes its yaw). One Odometry topic may serve velocity and heading;
+  ``nav_msgs/Odometry``: ``heading_quaternion`` ``(x, y, z, w[, yaw variance])`` of the orientation (the
+  assembler checks its norm and takes its yaw; the variance, where the type has one, serves
+  ``ekf.measurement_noise_from_covariance``). One Odometry topic may serve velocity and heading;
 * steering, ``sensor_msgs/JointState`` (joint ``steering.joint_name``; duplicate names refused) or
   ``std_msgs/Float64``: ``steering`` ``(angle,)``.
 
@@ -31,7 +32,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from transplanter_ident.config.schema import PARAMS
 from transplanter_ident.epochs.checks import OTHER, joint_angle
-from transplanter_ident.epochs.frames import stamp_seconds
+from transplanter_ident.epochs.frames import YAW_VARIANCE_IMU, YAW_VARIANCE_POSE, stamp_seconds
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
@@ -129,11 +130,12 @@ def _from_quaternion(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[f
 
 
 def _from_imu(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
-    return _stamp(msg, log_ns), _quaternion(msg.orientation)
+    return _stamp(msg, log_ns), (*_quaternion(msg.orientation), float(msg.orientation_covariance[YAW_VARIANCE_IMU]))
 
 
 def _from_pose(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
-    return _stamp(msg, log_ns), _quaternion(msg.pose.pose.orientation)
+    pose = msg.pose
+    return _stamp(msg, log_ns), (*_quaternion(pose.pose.orientation), float(pose.covariance[YAW_VARIANCE_POSE]))
 
 
 def _from_joint_state(msg: Any, log_ns: int, joint: str) -> tuple[float, tuple[float, ...]]:

@@ -11,6 +11,9 @@ real drivers do (issue #12, :mod:`transplanter_ident.sim.drivers` has one preset
   its epoch, as a driver that stamps it on arrival (ublox: 35-45 ms);
 * ``heading_offset``: the heading source's yaw relative to the vehicle x axis (a dual-antenna
   baseline mounted across the vehicle): the heading written is the vehicle's plus this;
+* ``report_noise``: each GNSS message reports the noise the simulator applied to it (its
+  ``velocity_std``/``heading_std``, e.g. larger while an RTK fix is lost) as its covariance, in every
+  type that has one; otherwise the constant ``velocity_std``/``heading_std`` (twist-cov, Imu);
 * ``invalid_fraction`` of the GNSS epochs carry the driver's invalid marker: ``nan`` (septentrio:
   NaN velocity and orientation) or ``covariance`` (swiftnav: a zero velocity with covariance[0] -1).
 """
@@ -57,6 +60,7 @@ class SimBagOptions:
     gnss_frame_id: str = "gnss_link"
     velocity_std: float = 0.02  # m/s, reported in TwistWithCovarianceStamped
     heading_std: float = math.radians(0.2)  # rad, reported in Imu
+    report_noise: bool = False  # report the simulator's per-epoch noise as the covariance (all types)
     gnss_first: bool = False  # at equal times, log GNSS before the same-instant steering sample
     heading_lag: float = 0.0  # s: heading stamped (and logged) this long after its epoch's velocity
     heading_lag_jitter: float = 0.0  # s: +- uniform spread of the lag
@@ -128,8 +132,13 @@ def _gnss_values(result: Any, opt: SimBagOptions, rng: np.random.Generator) -> d
     invalid = np.zeros(len(vel), dtype=bool)
     if opt.invalid_fraction > 0.0:
         invalid[1:] = rng.uniform(size=len(vel) - 1) < opt.invalid_fraction
+    n = len(vel)
+    velocity_std, heading_std = np.full(n, opt.velocity_std), np.full(n, opt.heading_std)
+    if opt.report_noise and result.velocity_std is not None:
+        velocity_std, heading_std = np.asarray(result.velocity_std), np.asarray(result.heading_std)
     return {"velocity": vel.tolist(), "quaternion": [yaw_quaternion(h) for h in heading.tolist()],
-            "invalid": invalid.tolist()}
+            "invalid": invalid.tolist(), "velocity_variance": (velocity_std**2).tolist(),
+            "heading_variance": (heading_std**2).tolist()}
 
 
 def write_sim_bag(result: Any, path: str | Path, options: SimBagOptions | None = None) -> int:
@@ -144,8 +153,6 @@ def write_sim_bag(result: Any, path: str | Path, options: SimBagOptions | None =
     rng = np.random.default_rng(opt.seed)
     kinds, indices, ns = _order(result, opt, rng)
     gnss = _gnss_values(result, opt, rng)
-    vel_cov = np.zeros(36)
-    vel_cov[[0, 7, 14]] = opt.velocity_std**2
     steer_list = np.asarray(result.steering, dtype=np.float64).tolist()
     truth = (np.column_stack([result.truth_cf, result.truth_cr]).tolist(),
              np.column_stack([result.truth_vx, result.truth_vy, result.truth_yaw_rate]).tolist())
@@ -158,7 +165,7 @@ def write_sim_bag(result: Any, path: str | Path, options: SimBagOptions | None =
                 else:
                     bag.write_joint_state(opt.steering_topic, ns["steer"][i], [opt.joint_name], [steer_list[i]])
             elif k == _VEL:
-                _write_velocity(bag, opt, ns["gnss"][i], gnss, i, vel_cov)
+                _write_velocity(bag, opt, ns["gnss"][i], gnss, i)
             elif k == _HEAD:
                 _write_heading(bag, opt, ns["heading"][i], gnss, i)
             else:
@@ -169,8 +176,10 @@ def write_sim_bag(result: Any, path: str | Path, options: SimBagOptions | None =
         return bag.count
 
 
-def _write_velocity(bag: BagWriter, opt: SimBagOptions, stamp: int, gnss: dict[str, list], i: int,
-                    covariance: np.ndarray) -> None:
+def _write_velocity(bag: BagWriter, opt: SimBagOptions, stamp: int, gnss: dict[str, list], i: int) -> None:
+    covariance = np.zeros(36)
+    covariance[[0, 7, 14]] = gnss["velocity_variance"][i]
+    yaw_variance = gnss["heading_variance"][i] if opt.report_noise else 0.0
     vx, vy = gnss["velocity"][i]
     q = gnss["quaternion"][i]
     if gnss["invalid"][i]:
@@ -179,11 +188,10 @@ def _write_velocity(bag: BagWriter, opt: SimBagOptions, stamp: int, gnss: dict[s
             q = (math.nan,) * 4
         else:
             vx = vy = 0.0
-            covariance = covariance.copy()
             covariance[0] = -1.0
     linear = (vx, vy, 0.0)
     if opt.velocity_type == "odometry":
-        bag.write_odometry(opt.velocity_topic, stamp, linear, q, covariance)
+        bag.write_odometry(opt.velocity_topic, stamp, linear, q, covariance, yaw_variance=yaw_variance)
     elif opt.velocity_type == "twist-cov":
         bag.write_twist_with_covariance(opt.velocity_topic, stamp, linear, covariance=covariance,
                                         frame_id=opt.gnss_frame_id)
@@ -195,12 +203,14 @@ def _write_heading(bag: BagWriter, opt: SimBagOptions, stamp: int, gnss: dict[st
     q = gnss["quaternion"][i]
     if gnss["invalid"][i] and opt.invalid_marker == "nan":
         q = (math.nan,) * 4
+    variance = gnss["heading_variance"][i]
+    reported = variance if opt.report_noise else 0.0  # Pose and Odometry report it only with report_noise
     if opt.heading_type == "imu":
-        bag.write_imu(opt.heading_topic, stamp, q, frame_id=opt.gnss_frame_id, orientation_variance=opt.heading_std**2)
+        bag.write_imu(opt.heading_topic, stamp, q, frame_id=opt.gnss_frame_id, orientation_variance=variance)
     elif opt.heading_type == "pose-cov":
-        bag.write_pose_with_covariance(opt.heading_topic, stamp, q, frame_id=opt.gnss_frame_id)
+        bag.write_pose_with_covariance(opt.heading_topic, stamp, q, frame_id=opt.gnss_frame_id, yaw_variance=reported)
     elif opt.heading_type == "odometry":
-        bag.write_odometry(opt.heading_topic, stamp, (0.0, 0.0, 0.0), q)
+        bag.write_odometry(opt.heading_topic, stamp, (0.0, 0.0, 0.0), q, yaw_variance=reported)
     else:
         bag.write_quaternion(opt.heading_topic, stamp, q, frame_id=opt.gnss_frame_id)
 
@@ -218,7 +228,9 @@ def reading_parameters(opt: SimBagOptions, *, gnss_delay: float = 0.0, antenna_x
     ``gnss_delay`` is the simulator's GNSS stamping delay; ``antenna_x``/``antenna_y`` its lever arm (for an
     Odometry velocity: the child frame's origin).
     """
+    reported = {"ekf.measurement_noise_from_covariance": True} if opt.report_noise else {}
     return {
+        **reported,
         "topics.velocity": opt.velocity_topic, "topics.heading": opt.heading_topic,
         "topics.steering": opt.steering_topic, "topics.velocity_type": _TYPE_NAMES[opt.velocity_type],
         "topics.heading_type": _TYPE_NAMES[opt.heading_type], "topics.steering_type": _TYPE_NAMES[opt.steering_type],

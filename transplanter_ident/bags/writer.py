@@ -40,6 +40,7 @@ from transplanter_ident.bags.messages import (
 )
 from transplanter_ident.bags.reader import _reason
 from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.epochs.frames import YAW_VARIANCE_POSE
 from transplanter_ident.files import atomic_output_dir
 
 
@@ -62,11 +63,13 @@ def _quaternion(q: Sequence[float]) -> Any:
     return _types()["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
 
 
-def _pose_with_covariance(orientation: Sequence[float]) -> Any:
+def _pose_with_covariance(orientation: Sequence[float], yaw_variance: float = 0.0) -> Any:
     types = _types()
     pose = types["geometry_msgs/msg/Pose"](position=types["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=0.0),
                                            orientation=_quaternion(orientation))
-    return types["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36))
+    covariance = np.zeros(36)
+    covariance[YAW_VARIANCE_POSE] = yaw_variance
+    return types["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=covariance)
 
 
 class BagWriter:
@@ -155,20 +158,25 @@ class BagWriter:
 
     def write_odometry(self, topic: str, stamp_ns: int, linear: Sequence[float], orientation: Sequence[float],
                        twist_covariance: Sequence[float] | None = None, *, frame_id: str = "odom",
-                       child_frame_id: str = "base_link", log_ns: int | None = None) -> None:
-        """nav_msgs/Odometry: the twist ``linear`` in the child (body) frame, the pose's ``orientation`` (x, y, z, w)."""
+                       child_frame_id: str = "base_link", yaw_variance: float = 0.0,
+                       log_ns: int | None = None) -> None:
+        """nav_msgs/Odometry: the twist ``linear`` in the child (body) frame, the pose's ``orientation`` (x, y, z, w).
+
+        ``yaw_variance`` goes to the pose covariance (0: unknown), the rest of which is zero.
+        """
         types = _types()
         twist = types["geometry_msgs/msg/Twist"](linear=_vector3(linear), angular=_vector3((0.0, 0.0, 0.0)))
         cov = np.zeros(36) if twist_covariance is None else np.asarray(twist_covariance, dtype=np.float64).reshape(36)
         msg = types[ODOMETRY](header=_header(stamp_ns, frame_id), child_frame_id=child_frame_id,
-                              pose=_pose_with_covariance(orientation),
+                              pose=_pose_with_covariance(orientation, yaw_variance),
                               twist=types["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=cov))
         self.write(topic, ODOMETRY, msg, stamp_ns if log_ns is None else log_ns)
 
     def write_pose_with_covariance(self, topic: str, stamp_ns: int, orientation: Sequence[float], *,
-                                   frame_id: str = "", log_ns: int | None = None) -> None:
-        """geometry_msgs/PoseWithCovarianceStamped carrying an orientation (position zero, covariance zero)."""
-        msg = _types()[POSE_COV_STAMPED](header=_header(stamp_ns, frame_id), pose=_pose_with_covariance(orientation))
+                                   frame_id: str = "", yaw_variance: float = 0.0, log_ns: int | None = None) -> None:
+        """geometry_msgs/PoseWithCovarianceStamped: an orientation, its yaw variance (0: unknown), the rest zero."""
+        msg = _types()[POSE_COV_STAMPED](header=_header(stamp_ns, frame_id),
+                                         pose=_pose_with_covariance(orientation, yaw_variance))
         self.write(topic, POSE_COV_STAMPED, msg, stamp_ns if log_ns is None else log_ns)
 
     def write_quaternion(self, topic: str, stamp_ns: int, quaternion: Sequence[float], *, frame_id: str = "",

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 
 from transplanter_ident.cli.util import CliError, cli_main
 from transplanter_ident.sim.drivers import DRIVERS, HEADING_TYPES, VELOCITY_TYPES
@@ -30,7 +31,7 @@ from transplanter_ident.sim.scenarios import DEFAULT_SCENARIO, SCENARIOS
 #: SimBagOptions field -> the option that sets it
 ENCODING_OPTIONS = ("velocity_type", "heading_type", "steering_type", "velocity_frame", "heading_frame", "heading_lag",
                     "heading_lag_jitter", "heading_offset", "invalid_fraction", "invalid_marker", "velocity_topic",
-                    "heading_topic", "steering_topic", "joint_name")
+                    "heading_topic", "steering_topic", "joint_name", "report_noise")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -61,6 +62,9 @@ def build_parser() -> argparse.ArgumentParser:
     imperfect.add_argument("--gnss-delay", metavar="S", type=float,
                            help="GNSS velocity and heading stamped S late, as by a driver stamping on arrival "
                                 "(default 0; replay with gnss.delay: S)")
+    imperfect.add_argument("--gnss-degraded", metavar=("START", "END", "FACTOR"), type=float, nargs=3,
+                           help="GNSS velocity and heading noise FACTOR times larger from START to END s (an RTK "
+                                "fix lost to float); with --report-noise the messages say so")
     imperfect.add_argument("--gnss-first", action="store_true",
                            help="log each GNSS message before the steering sample of the same instant")
     enc = parser.add_argument_group("message types, frames, topics and drivers (issue #12)")
@@ -88,6 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="share of GNSS epochs written with the driver's invalid marker (default 0)")
     enc.add_argument("--invalid-marker", choices=("nan", "covariance"),
                      help="nan: NaN velocity and orientation; covariance: zero velocity with covariance[0] = -1")
+    enc.add_argument("--report-noise", action="store_const", const=True,
+                     help="every GNSS message reports the noise applied to it as its covariance (all types "
+                     "that have one); --params-out then sets ekf.measurement_noise_from_covariance")
     enc.add_argument("--velocity-topic", metavar="TOPIC", help="(default /gnss/vel)")
     enc.add_argument("--heading-topic", metavar="TOPIC", help="(default /gnss/heading)")
     enc.add_argument("--steering-topic", metavar="TOPIC", help="(default /steering_angle)")
@@ -137,6 +144,8 @@ def _run(args: argparse.Namespace) -> int:
                               steering_rate=args.steering_rate, antenna_x=args.antenna_x,
                               antenna_y=args.antenna_y, steering_offset=args.steering_offset,
                               gnss_delay=delay)
+        if args.gnss_degraded:
+            config = replace(config, gnss_degraded=tuple(args.gnss_degraded))
         options = SimBagOptions(start_time=args.start_time, truth=not args.no_truth, compress=args.compress,
                                 overwrite=args.force, gnss_first=args.gnss_first, seed=args.seed, **_encoding(args))
     except (ValueError, TypeError) as exc:

@@ -66,6 +66,7 @@ class FilterOptions:
     change_threshold: float = 12.0  # CUSUM alarm level (log-likelihood ratio)
     change_process_noise: float = 2.0e-2  # stiffness Q density after an alarm, (ln C)^2/s
     change_hold: float = 4.0  # s the raised density lasts after an alarm
+    measurement_noise_from_covariance: bool = False  # R per epoch: the messages' variances, floored by R
 
     def __post_init__(self) -> None:
         _check_choice("ekf.discretization", self.discretization, DISCRETIZATIONS)
@@ -87,11 +88,6 @@ class FilterOptions:
             raise ValueError(f"ekf.change_scale must be > 1, got {self.change_scale!r}")
         if not (math.isfinite(self.change_threshold) and self.change_threshold > 0.0):
             raise ValueError(f"ekf.change_threshold must be > 0, got {self.change_threshold!r}")
-
-    @property
-    def state_size(self) -> int:
-        """[vy, r, psi, Cf, Cr, b] for heading, [vy, r, Cf, Cr, b] for yaw_rate."""
-        return 6 if self.measurement == "heading" else 5
 
     @property
     def noise_rate_scale(self) -> float:

@@ -185,6 +185,9 @@ SCHEMA: tuple[Param, ...] = (
     _float("ekf.process_noise_step", 0.2, "s", "the GNSS interval per_step values were tuned for", 0.001, 10.0),
     _floats("ekf.measurement_noise", (4.0e-4, 1.2e-5), "(m/s)^2, rad^2",
             "diag R: vy, then heading (or r in (rad/s)^2 in yaw_rate mode)", 0.0, MAX_NOISE, read_only=False),
+    _bool("ekf.measurement_noise_from_covariance", False, "R per epoch from the variances the GNSS messages "
+          "report (TwistWithCovarianceStamped/Odometry twist, Imu/PoseWithCovarianceStamped/Odometry yaw), with "
+          "ekf.measurement_noise as the floor; a message without one uses ekf.measurement_noise"),
     _float("ekf.heading_process_noise", 1.0e-8, "rad^2/s", "Q density of the heading state (heading mode)",
            0.0, MAX_NOISE, read_only=False),
     _bool("ekf.estimate_steering_offset", True, "estimate the steering-sensor offset as a filter state"),

@@ -68,6 +68,7 @@ from transplanter_ident.ekf.layout import (
     S_P0_PSI,
     S_P0_R,
     S_P0_VY,
+    S_R_FROM_COVARIANCE,
     X_OFFSET,
     X_PSI,
     X_THETA_F,
@@ -76,6 +77,7 @@ from transplanter_ident.ekf.layout import (
 )
 from transplanter_ident.ekf.model import vehicle_array, work_buffer
 from transplanter_ident.ekf.persistence import LearnedState
+from transplanter_ident.ekf.sequence import epoch_measurement_noise
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
 
 
@@ -168,6 +170,7 @@ class FilterArrays:
         settings[S_CHANGE_HOLD] = options.change_hold
         settings[S_LINEAR_RANGE] = 1.0 if options.linear_range_check else 0.0
         settings[S_CHANGE_DETECTION] = 1.0 if options.change_detection else 0.0
+        settings[S_R_FROM_COVARIANCE] = 1.0 if options.measurement_noise_from_covariance else 0.0
         q, p0 = _state_diagonals(noise, options)
         x0 = np.zeros(len(q))
         x0[X_THETA_F] = to_state(noise.initial_stiffness[0])
@@ -244,8 +247,13 @@ class JointEKF:
     def step(self, epoch: Epoch) -> Estimate:
         """Filter one epoch (eq. 12) and return the estimate."""
         a = self._arrays
+        r_noise = a.measurement_noise
+        if self._config.options.measurement_noise_from_covariance:  # as run/objective do (sequence.py)
+            r_noise = np.zeros(2)
+            epoch_measurement_noise(a.measurement_noise, a.settings, a.settings[S_HEADING] > 0.5,
+                                    epoch.velocity_variance, epoch.heading_variance, epoch.yaw_rate_variance, r_noise)
         ekf_step(self.state, self.covariance, self._model, self._memo, a.vehicle, a.settings,
-                 a.process_noise, a.measurement_noise, epoch.t, epoch.speed, epoch.steering,
+                 a.process_noise, r_noise, epoch.t, epoch.speed, epoch.steering,
                  epoch.steering_rate, epoch.antenna_lateral_velocity, epoch.heading, epoch.yaw_rate, self._ws, self._out)
         return Estimate.from_row(epoch.t, self._out)
 

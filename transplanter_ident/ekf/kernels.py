@@ -30,18 +30,8 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
 from transplanter_ident.ekf.adaptation import beyond_linear_range, detect_change, known_to
 from transplanter_ident.ekf.layout import (
-    DIVERGENCE_PENALTY,
-    E_PSI,
-    E_SPEED,
-    E_STEERING,
-    E_STEERING_RATE,
-    E_T,
-    E_VY,
-    E_YAW_RATE,
     EULER,
     HEADING_STATES,
     M_ADAPT_UNTIL,
@@ -49,11 +39,9 @@ from transplanter_ident.ekf.layout import (
     M_GATED,
     M_INITIALISED,
     M_T_PREV,
-    MAE,
     N_MODEL,
     N_MOTION_HEADING,
     N_MOTION_YAW_RATE,
-    N_OUTPUTS,
     O_CF,
     O_CF_STD,
     O_CORRELATION,
@@ -94,8 +82,6 @@ from transplanter_ident.ekf.layout import (
     W_E,
     W_F,
     W_VEC,
-    WORK_SIZE,
-    WORK_SLOTS,
     X_PSI,
     X_R,
     X_VY,
@@ -105,6 +91,7 @@ from transplanter_ident.ekf.layout import (
     StepStatus,
 )
 from transplanter_ident.ekf.model import discretize_heading, discretize_yaw_rate
+from transplanter_ident.ekf.sequence import make_sequence_kernels
 from transplanter_ident.ekf.update import make_update
 from transplanter_ident.epochs.frames import wrap_angle
 from transplanter_ident.jit import inline_kernel, sized_kernel
@@ -351,50 +338,5 @@ def make_kernels(heading):
         write_outputs(x, p, settings, status, r_model, vy_model, out)
         return status
 
-    @sized_kernel
-    def run_n(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs):
-        """step_n over every row of ``epochs``; one output row per epoch."""
-        ws = np.zeros((WORK_SLOTS, WORK_SIZE, WORK_SIZE))
-        out = np.zeros(N_OUTPUTS)
-        for k in range(epochs.shape[0]):
-            step_n(x, p, model, memo, vehicle, settings, q, r_noise, epochs[k, E_T], epochs[k, E_SPEED],
-                   epochs[k, E_STEERING], epochs[k, E_STEERING_RATE], epochs[k, E_VY], epochs[k, E_PSI],
-                   epochs[k, E_YAW_RATE], ws, out)
-            for j in range(N_OUTPUTS):
-                outputs[k, j] = out[j]
-
-    @sized_kernel
-    def objective_n(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind):
-        """Tuning objective over a sequence: eq. 21 mean |innovation| (MAE) or Gaussian NLL.
-
-        Only epochs with a predicted measurement (UPDATED, GATED, NONLINEAR) count. A diverging
-        filter, or one that never predicts, scores DIVERGENCE_PENALTY.
-        """
-        ws = np.zeros((WORK_SLOTS, WORK_SIZE, WORK_SIZE))
-        out = np.zeros(N_OUTPUTS)
-        total = 0.0
-        count = 0
-        for k in range(epochs.shape[0]):
-            status = step_n(x, p, model, memo, vehicle, settings, q, r_noise, epochs[k, E_T], epochs[k, E_SPEED],
-                            epochs[k, E_STEERING], epochs[k, E_STEERING_RATE], epochs[k, E_VY], epochs[k, E_PSI],
-                            epochs[k, E_YAW_RATE], ws, out)
-            if status == StepStatus.DIVERGED:
-                return DIVERGENCE_PENALTY
-            if status != StepStatus.UPDATED and status != StepStatus.GATED and status != StepStatus.NONLINEAR:
-                continue
-            if kind == MAE:
-                total += abs(out[O_E0]) + abs(out[O_E1])
-            else:
-                det = out[O_S00] * out[O_S11] - out[O_S01] * out[O_S01]
-                if det <= 0.0:
-                    return DIVERGENCE_PENALTY
-                total += 0.5 * (out[O_NIS] + math.log(det)) + math.log(2.0 * math.pi)
-            count += 1
-        if count == 0:
-            return DIVERGENCE_PENALTY
-        value = total / count
-        if not _finite(value):
-            return DIVERGENCE_PENALTY
-        return min(value, DIVERGENCE_PENALTY)
-
+    run_n, objective_n = make_sequence_kernels(step_n, heading)
     return predict_n, step_n, run_n, objective_n

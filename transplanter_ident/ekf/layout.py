@@ -34,8 +34,8 @@ S_METHOD, S_LOG, S_HEADING, S_MIN_SPEED, S_LOW, S_HIGH = 0, 1, 2, 3, 4, 5
 S_GATE, S_MAX_GATED, S_MAX_INTERVAL, S_P0_VY, S_P0_R, S_P0_PSI = 6, 7, 8, 9, 10, 11
 S_ANTENNA_X, S_MAX_SLIP, S_MAX_LAT_ACC = 12, 13, 14
 S_CUSUM_SCALE, S_CUSUM_THRESHOLD, S_CUSUM_CAP, S_CHANGE_Q = 15, 16, 17, 18
-S_LINEAR_RANGE, S_CHANGE_DETECTION, S_CHANGE_HOLD = 19, 20, 21
-N_SETTINGS = 22
+S_LINEAR_RANGE, S_CHANGE_DETECTION, S_CHANGE_HOLD, S_R_FROM_COVARIANCE = 19, 20, 21, 22
+N_SETTINGS = 23
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6
@@ -53,7 +53,9 @@ N_MODEL = 3
 
 # epoch columns of the kernels' input, and the Epoch field each one holds (joint_ekf.kernel_input)
 E_T, E_SPEED, E_STEERING, E_STEERING_RATE, E_VY, E_PSI, E_YAW_RATE = 0, 1, 2, 3, 4, 5, 6
-EPOCH_COLUMNS = ("t", "speed", "steering", "steering_rate", "antenna_lateral_velocity", "heading", "yaw_rate")
+E_VAR_VY, E_VAR_PSI, E_VAR_YAW_RATE = 7, 8, 9  # the variances the messages report (NaN: none)
+EPOCH_COLUMNS = ("t", "speed", "steering", "steering_rate", "antenna_lateral_velocity", "heading", "yaw_rate",
+                 "velocity_variance", "heading_variance", "yaw_rate_variance")
 N_EPOCH_COLUMNS = len(EPOCH_COLUMNS)
 
 # vehicle constants (model.vehicle_array)

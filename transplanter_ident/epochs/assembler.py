@@ -48,6 +48,7 @@ from transplanter_ident.epochs.epoch import Epoch, Rejection
 from transplanter_ident.epochs.frames import (
     body_velocity,
     heading_to_enu_yaw,
+    lateral_variance,
     quaternion_yaw,
     remove_lever_arm,
     unwrap_heading,
@@ -113,11 +114,12 @@ class AssemblerSettings:
 
 @dataclass
 class _Anchor:
-    """The start of the next interval: time, unwrapped yaw, CG vx."""
+    """The start of the next interval: time, unwrapped yaw, CG vx, the yaw's reported variance (0: none)."""
 
     t: float
     yaw: float
     vx: float
+    yaw_variance: float
 
 
 class EpochAssembler:
@@ -162,16 +164,22 @@ class EpochAssembler:
     def add_velocity(self, stamp: float, first: float, second: float, variance_first: float = 0.0,
                      variance_second: float = 0.0) -> list[Epoch]:
         """A GNSS ground velocity, (east, north) or (north, east) by frame; variances 0 when unknown."""
-        east, north = velocity_to_enu(first, second, self.settings.velocity_frame)
-        return self._add_velocity(stamp, ("enu", east, north), (first, second), (variance_first, variance_second))
+        frame = self.settings.velocity_frame
+        east, north = velocity_to_enu(first, second, frame)
+        variance_east, variance_north = velocity_to_enu(variance_first, variance_second, frame)
+        return self._add_velocity(stamp, ("enu", east, north, variance_east, variance_north), (first, second),
+                                  (variance_first, variance_second))
 
     def add_body_velocity(self, stamp: float, vx: float, vy: float, variance_x: float = 0.0,
                           variance_y: float = 0.0) -> list[Epoch]:
         """A velocity already in body axes at the antenna (x forward, y left), e.g. a nav_msgs/Odometry twist."""
-        return self._add_velocity(stamp, ("body", vx, vy), (vx, vy), (variance_x, variance_y))
+        return self._add_velocity(stamp, ("body", vx, vy, variance_x, variance_y), (vx, vy), (variance_x, variance_y))
 
-    def add_heading(self, stamp: float, heading: float) -> list[Epoch]:
-        """A GNSS heading sample (ENU yaw, or compass heading for ``ned``) of the heading source, rad."""
+    def add_heading(self, stamp: float, heading: float, variance: float = 0.0) -> list[Epoch]:
+        """A GNSS heading sample (ENU yaw, or compass heading for ``ned``) of the heading source, rad.
+
+        ``variance``: its reported variance, rad^2 (0, or not a positive number: not given).
+        """
         if not (math.isfinite(stamp) and math.isfinite(heading)):
             return self._reject("heading", stamp, "non-finite value", checks.NON_FINITE)
         motion_time = stamp - self.settings.gnss_delay
@@ -184,14 +192,15 @@ class EpochAssembler:
             return self._reject("heading", stamp, "stamp not after the previous heading sample", checks.STAMP_ORDER)
         self._guard.accept("heading", motion_time)
         yaw = heading_to_enu_yaw(heading, self.settings.heading_frame) - self.settings.heading_offset
-        return self._pair("heading", stamp, yaw)
+        return self._pair("heading", stamp, (yaw, variance if variance > 0.0 else 0.0))
 
-    def add_heading_quaternion(self, stamp: float, x: float, y: float, z: float, w: float) -> list[Epoch]:
+    def add_heading_quaternion(self, stamp: float, x: float, y: float, z: float, w: float,
+                               variance: float = 0.0) -> list[Epoch]:
         """A GNSS heading given as an orientation quaternion (QuaternionStamped, Imu, Pose, Odometry)."""
         problem = checks.quaternion_problem(x, y, z, w)
         if problem is not None:
             return self._reject("heading", stamp, problem[1], problem[0])
-        return self.add_heading(stamp, quaternion_yaw(x, y, z, w))
+        return self.add_heading(stamp, quaternion_yaw(x, y, z, w), variance)
 
     def add_steering(self, stamp: float, angle: float) -> list[Epoch]:
         """A front steering angle sample, rad, positive to the left."""
@@ -273,12 +282,11 @@ class EpochAssembler:
         pairs, given_up = self._pairer.add(role, stamp, payload)
         for sample in given_up:
             self._reject_unpaired(sample)
-        for tv, (frame, a, b), yaw in pairs:
-            if frame == "enu":
-                vx_ant, vy_ant = body_velocity(a, b, yaw)
-            else:
-                vx_ant, vy_ant = body_velocity(a, b, -self.settings.body_velocity_rotation)
-            self._pending.append((tv - self.settings.gnss_delay, vx_ant, vy_ant, yaw))
+        for tv, (frame, a, b, variance_a, variance_b), (yaw, yaw_variance) in pairs:
+            turn = yaw if frame == "enu" else -self.settings.body_velocity_rotation
+            vx_ant, vy_ant = body_velocity(a, b, turn)
+            vy_variance = lateral_variance(variance_a, variance_b, turn)
+            self._pending.append((tv - self.settings.gnss_delay, vx_ant, vy_ant, yaw, vy_variance, yaw_variance))
         return self._flush() if pairs else []
 
     def _reject_unpaired(self, sample: Unpaired) -> None:
@@ -311,11 +319,12 @@ class EpochAssembler:
                 epochs.append(epoch)
         return epochs
 
-    def _gnss_epoch(self, t: float, vx_ant: float, vy_ant: float, yaw: float) -> Epoch | None:
+    def _gnss_epoch(self, t: float, vx_ant: float, vy_ant: float, yaw: float, vy_variance: float,
+                    yaw_variance: float) -> Epoch | None:
         previous = self._previous
         settings = self.settings
         if previous is None:
-            self._previous = _Anchor(t, yaw, vx_ant)
+            self._previous = _Anchor(t, yaw, vx_ant, yaw_variance)
             return None
         unwrapped = unwrap_heading(previous.yaw, yaw)
         dt = t - previous.t
@@ -325,20 +334,22 @@ class EpochAssembler:
         if limit is not None:
             self._beyond_limits += 1
             if self._beyond_limits >= REANCHOR_AFTER:  # the start itself may be the bad sample
-                self._previous = _Anchor(t, yaw, vx)
+                self._previous = _Anchor(t, yaw, vx, yaw_variance)
                 self._beyond_limits = 0
             topic, reason, kind = limit
             self.rejections.append(Rejection(topic, t, reason, kind))
             return None
         self._beyond_limits = 0
-        self._previous = _Anchor(t, unwrapped, vx)
+        self._previous = _Anchor(t, unwrapped, vx, yaw_variance)
         steering = self._steering_line(previous.t, t)
         if steering is None:
             self.rejections.append(Rejection("epoch", t, "no recent steering angle", checks.NO_STEERING))
             return None
         return Epoch(t=t, longitudinal_velocity=vx, lateral_velocity=vy, heading=unwrapped,
                      yaw_rate=yaw_rate, steering=steering[0], steering_rate=steering[1],
-                     speed=0.5 * (previous.vx + vx), antenna_lateral_velocity=vy_ant)
+                     speed=0.5 * (previous.vx + vx), antenna_lateral_velocity=vy_ant,
+                     velocity_variance=vy_variance, heading_variance=yaw_variance,
+                     yaw_rate_variance=_yaw_rate_variance(previous.yaw_variance, yaw_variance, dt))
 
     def _limit_problem(self, yaw_rate: float, vy: float) -> tuple[str, str, str] | None:
         """(topic, reason, kind) when the epoch is beyond the vehicle's yaw-rate or lateral-speed limit."""
@@ -359,6 +370,11 @@ class EpochAssembler:
             return None  # nothing recent, or nothing before the interval's end (never extrapolate back)
         times, values = zip(*samples, strict=True)
         return interval_line(times, values, start, end)
+
+
+def _yaw_rate_variance(start: float, end: float, dt: float) -> float:
+    """Variance of the interval's (end - start) / dt from the two headings' reported variances (0: unknown)."""
+    return (start + end) / (dt * dt) if start > 0.0 and end > 0.0 else 0.0
 
 
 #: sample names of :func:`assemble` -> the assembler method that takes them

@@ -23,6 +23,10 @@ class Epoch:
     #: vy of the GNSS antenna in body axes at t, m/s: what the filter measures (h = vy + antenna_x r);
     #: ``lateral_velocity`` is the CG value from the interval-mean r, for display. None: the same.
     antenna_lateral_velocity: float | None = None
+    #: the variances the GNSS messages report (0: not given, as in ROS), for ekf.measurement_noise_from_covariance:
+    velocity_variance: float = 0.0  # of antenna_lateral_velocity, (m/s)^2
+    heading_variance: float = 0.0  # of heading, rad^2
+    yaw_rate_variance: float = 0.0  # of yaw_rate (two headings over the interval), (rad/s)^2
 
     def __post_init__(self) -> None:
         if self.antenna_lateral_velocity is None:

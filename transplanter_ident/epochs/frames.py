@@ -19,6 +19,11 @@ def wrap_angle(angle):  # noqa: ANN001, ANN201 - a float or an array, compiled f
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
+#: the yaw variance's index in sensor_msgs/Imu orientation_covariance (3x3, row-major) and in a
+#: PoseWithCovariance covariance (6x6 over x, y, z, roll, pitch, yaw)
+YAW_VARIANCE_IMU = 8
+YAW_VARIANCE_POSE = 35
+
 def stamp_seconds(sec: int, nanosec: int) -> float:
     """A ROS time (sec, nanosec) in seconds, via integer nanoseconds (node and bag reader alike)."""
     return (sec * 1_000_000_000 + nanosec) / 1e9
@@ -45,6 +50,17 @@ def body_velocity(east: float, north: float, yaw: float) -> tuple[float, float]:
     """Rotate an ENU ground velocity into the body frame (x forward, y left)."""
     c, s = math.cos(yaw), math.sin(yaw)
     return c * east + s * north, -s * east + c * north
+
+
+def lateral_variance(variance_first: float, variance_second: float, yaw: float) -> float:
+    """Variance of the body-frame vy of :func:`body_velocity` from the two axes' variances (no cross term).
+
+    0 (unknown, the ROS convention for a zero covariance) unless both are given (> 0).
+    """
+    if not (variance_first > 0.0 and variance_second > 0.0):
+        return 0.0
+    s, c = math.sin(yaw), math.cos(yaw)
+    return s * s * variance_first + c * c * variance_second
 
 
 def remove_lever_arm(vx: float, vy: float, yaw_rate: float, antenna_x: float,

@@ -34,7 +34,7 @@ from transplanter_ident.ekf.joint_ekf import Estimate
 from transplanter_ident.epochs.assembler import EpochAssembler
 from transplanter_ident.epochs.checks import joint_angle
 from transplanter_ident.epochs.epoch import Epoch
-from transplanter_ident.epochs.frames import stamp_seconds
+from transplanter_ident.epochs.frames import YAW_VARIANCE_IMU, YAW_VARIANCE_POSE, stamp_seconds
 from transplanter_ident.evaluation.health import HealthReport
 
 #: (assembler, stamp s, message) -> the epochs the sample completes
@@ -56,12 +56,21 @@ def _odometry_twist(assembler: EpochAssembler, stamp: float, msg: Odometry) -> l
     return assembler.add_body_velocity(stamp, v.x, v.y, float(c[0]), float(c[7]))
 
 
-def _orientation(field: Callable[[Any], Any]) -> Feeder:
+def _orientation(field: Callable[[Any], Any], yaw_variance: Callable[[Any], float] | None = None) -> Feeder:
     def feed(assembler: EpochAssembler, stamp: float, msg: Any) -> list[Epoch]:
         q = field(msg)
-        return assembler.add_heading_quaternion(stamp, q.x, q.y, q.z, q.w)
+        variance = float(yaw_variance(msg)) if yaw_variance is not None else 0.0
+        return assembler.add_heading_quaternion(stamp, q.x, q.y, q.z, q.w, variance)
 
     return feed
+
+
+def _imu_yaw_variance(msg: Imu) -> float:
+    return msg.orientation_covariance[YAW_VARIANCE_IMU]
+
+
+def _pose_yaw_variance(msg: Any) -> float:
+    return msg.pose.covariance[YAW_VARIANCE_POSE]
 
 
 #: topics.velocity_type -> (class, feeder)
@@ -73,10 +82,11 @@ VELOCITY_TYPES: dict[str, tuple[type, Feeder]] = {
 #: topics.heading_type -> (class, feeder of the orientation)
 HEADING_TYPES: dict[str, tuple[type, Feeder]] = {
     "geometry_msgs/msg/QuaternionStamped": (QuaternionStamped, _orientation(lambda msg: msg.quaternion)),
-    "sensor_msgs/msg/Imu": (Imu, _orientation(lambda msg: msg.orientation)),
+    "sensor_msgs/msg/Imu": (Imu, _orientation(lambda msg: msg.orientation, _imu_yaw_variance)),
     "geometry_msgs/msg/PoseWithCovarianceStamped": (PoseWithCovarianceStamped,
-                                                    _orientation(lambda msg: msg.pose.pose.orientation)),
-    "nav_msgs/msg/Odometry": (Odometry, _orientation(lambda msg: msg.pose.pose.orientation)),
+                                                    _orientation(lambda msg: msg.pose.pose.orientation,
+                                                                 _pose_yaw_variance)),
+    "nav_msgs/msg/Odometry": (Odometry, _orientation(lambda msg: msg.pose.pose.orientation, _pose_yaw_variance)),
 }
 #: topics.steering_type -> class (a JointState carries a stamp and joints, a Float64 only the angle)
 STEERING_TYPES: dict[str, type] = {"sensor_msgs/msg/JointState": JointState, "std_msgs/msg/Float64": Float64}

@@ -84,6 +84,9 @@ class SimConfig:
     small_angle: bool = True  # cos(delta) -> 1, so linear tires reproduce eq. (4) exactly
     steering_offset: float = 0.0  # rad: the steering sensor reads the wheel angle + this
     gnss_delay: float = 0.0  # s: GNSS messages are stamped this late (the motion is at stamp - delay)
+    #: (start s, end s, factor): the GNSS velocity and heading noise is this many times larger in the window
+    #: (an RTK fix lost to float); the result's velocity_std/heading_std say what was applied
+    gnss_degraded: tuple[float, float, float] = (0.0, 0.0, 1.0)
 
     def __post_init__(self) -> None:
         if self.tire not in TIRE_MODELS:
@@ -94,6 +97,9 @@ class SimConfig:
         require_finite("initial_heading", self.initial_heading)
         require_finite("steering_offset", self.steering_offset)
         require_finite("gnss_delay", self.gnss_delay)
+        if not (len(self.gnss_degraded) == 3 and all(math.isfinite(v) for v in self.gnss_degraded)
+                and self.gnss_degraded[2] > 0.0):
+            raise ValueError(f"gnss_degraded must be (start, end, factor > 0), got {self.gnss_degraded!r}")
 
 
 @dataclass(frozen=True)
@@ -113,6 +119,8 @@ class SimResult:
     truth_cr: np.ndarray  # (N,)
     truth_steering: np.ndarray  # (N,) true delta at gnss_time
     gnss_stamp: np.ndarray | None = None  # (N,) s, the GNSS messages' stamps: gnss_time + gnss_delay
+    velocity_std: np.ndarray | None = None  # (N,) m/s per axis: the 1-sigma noise applied to each velocity
+    heading_std: np.ndarray | None = None  # (N,) rad: likewise for each heading
 
     def __post_init__(self) -> None:
         if self.gnss_stamp is None:
@@ -148,8 +156,10 @@ def simulate(config: SimConfig) -> SimResult:
 
     rng = np.random.default_rng(config.seed)
     noise = config.noise
-    vel_meas = vel_enu + noise.velocity * rng.standard_normal(vel_enu.shape)
-    heading_meas = wrap_angle(psi + noise.heading * rng.standard_normal(psi.shape))
+    start, end, factor = config.gnss_degraded
+    scale = np.where((gnss_time >= start) & (gnss_time < end), factor, 1.0)
+    vel_meas = vel_enu + (noise.velocity * scale)[:, None] * rng.standard_normal(vel_enu.shape)
+    heading_meas = wrap_angle(psi + noise.heading * scale * rng.standard_normal(psi.shape))
     steer_meas = _evaluate(config.steering, steering_time) + noise.steering * rng.standard_normal(
         steering_time.shape
     ) + config.steering_offset
@@ -168,6 +178,8 @@ def simulate(config: SimConfig) -> SimResult:
         truth_cr=cr,
         truth_steering=delta_true,
         gnss_stamp=gnss_time + config.gnss_delay,
+        velocity_std=noise.velocity * scale,
+        heading_std=noise.heading * scale,
     )
 
 
