@@ -37,6 +37,7 @@ from transplanter_ident.bags.messages import (
     TYPESTORE,
     VECTOR3_STAMPED,
 )
+from transplanter_ident.epochs.frames import YAW_VARIANCE_IMU, YAW_VARIANCE_POSE
 
 CDR_LE = b"\x00\x01\x00\x00"
 #: templates tried per message length of a connection before the rest go one by one
@@ -86,7 +87,7 @@ def _fixed(buf: bytes, extra: int, offsets: Sequence[int]) -> Layout:
 
 def _odometry(buf: bytes, role: str) -> Layout:
     base = _align(_string_end(buf, _string_end(buf, 8)), 8)
-    offsets = (344, 352, 392, 392 + 56) if role == "velocity" else (24, 32, 40, 48)
+    offsets = (344, 352, 392, 392 + 56) if role == "velocity" else (24, 32, 40, 48, 56 + 8 * YAW_VARIANCE_POSE)
     return Layout(PAYLOAD + base + 680, True, tuple(PAYLOAD + base + o for o in offsets),
                   ((PAYLOAD + base, PAYLOAD + base + 680),))
 
@@ -112,10 +113,10 @@ def layout_of(msgtype: str, buf: bytes, role: str, template: Any, joint: str) ->
         return _fixed(buf, 48 + 288, (0, 8, 48, 48 + 56))
     if msgtype == QUATERNION_STAMPED:
         return _fixed(buf, 32, (0, 8, 16, 24))
-    if msgtype == IMU:
-        return _fixed(buf, 296, (0, 8, 16, 24))
-    if msgtype == POSE_COV_STAMPED:
-        return _fixed(buf, 344, (24, 32, 40, 48))
+    if msgtype == IMU:  # orientation, then orientation_covariance[YAW_VARIANCE_IMU]
+        return _fixed(buf, 296, (0, 8, 16, 24, 32 + 8 * YAW_VARIANCE_IMU))
+    if msgtype == POSE_COV_STAMPED:  # pose.orientation, then pose.covariance[YAW_VARIANCE_POSE]
+        return _fixed(buf, 344, (24, 32, 40, 48, 56 + 8 * YAW_VARIANCE_POSE))
     if msgtype == VECTOR3_STAMPED:
         return _fixed(buf, 24, (0, 8, 16))
     if msgtype == ODOMETRY:
@@ -134,6 +135,8 @@ def width_of(msgtype: str, role: str) -> int:
         return 1
     if msgtype == TWIST_STAMPED:
         return 3 if role == "truth_velocity" else 2
+    if msgtype in (IMU, POSE_COV_STAMPED) or (msgtype == ODOMETRY and role == "heading"):
+        return 5  # the quaternion and the yaw variance
     return 3 if msgtype == VECTOR3_STAMPED else 4
 
 

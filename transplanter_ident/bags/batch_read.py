@@ -10,6 +10,7 @@ as :class:`~transplanter_ident.epochs.batch.SampleStream` columns keyed by arriv
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -17,8 +18,9 @@ import numpy as np
 from transplanter_ident.bags.batch_decode import decode_connection, width_of
 from transplanter_ident.bags.messages import _DECODE_ERRORS, TYPESTORE, _Unusable, seconds
 from transplanter_ident.epochs import checks
-from transplanter_ident.epochs.batch import SampleStream
-from transplanter_ident.epochs.epoch import Rejection
+from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
+from transplanter_ident.epochs.batch import BatchResult, SampleStream, assemble_batch, stream_samples
+from transplanter_ident.epochs.epoch import EpochArrays, Rejection
 from transplanter_ident.files import Progress
 
 #: (entry position, role, assembler input, stamp, values) of one decoded message
@@ -118,3 +120,25 @@ def _slow_path(scan: Any, table: dict, ids: np.ndarray, logs: np.ndarray, datas:
             row = np.array([values], dtype=np.float64).reshape(1, len(values))
             columns.setdefault((role, name, len(values)), []).append(
                 (np.array([i * 2 + position], dtype=np.int64), np.array([stamp], dtype=np.float64), row))
+
+
+def assemble_scan(new_scan: Callable[[], Any], settings: AssemblerSettings, *,
+                  batch: bool) -> tuple[EpochAssembler | BatchResult, EpochArrays, Any]:
+    """(assembler or its batch result, epochs, the scan that read them) of one bag.
+
+    In batches where :func:`~transplanter_ident.epochs.batch.assemble_batch` applies; otherwise the
+    same samples go through the streaming assembler (read again message by message when the batch
+    pass could not hold them).
+    """
+    scan = new_scan()
+    streams = scan.batch() if batch else None
+    result = assemble_batch(settings, streams) if streams is not None else None
+    if result is not None:
+        return result, result.epochs, scan
+    assembler = EpochAssembler(settings)
+    if streams is None:
+        scan = new_scan() if batch else scan
+        samples = scan.samples()
+    else:
+        samples = stream_samples(streams)
+    return assembler, EpochArrays(assemble(assembler, samples)), scan

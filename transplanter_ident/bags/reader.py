@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from rosbags.rosbag2 import Reader
 
-from transplanter_ident.bags.batch_read import message_samples, read_batch
+from transplanter_ident.bags.batch_read import assemble_scan, message_samples, read_batch
 from transplanter_ident.bags.errors import BagError
 from transplanter_ident.bags.messages import (
     _DECODE_ERRORS,
@@ -40,8 +40,8 @@ from transplanter_ident.bags.messages import (
     normalize_msgtype,
 )
 from transplanter_ident.epochs import checks
-from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
-from transplanter_ident.epochs.batch import BatchResult, SampleStream, assemble_batch, stream_samples
+from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler
+from transplanter_ident.epochs.batch import BatchResult, SampleStream
 from transplanter_ident.epochs.epoch import EpochArrays, Rejection
 from transplanter_ident.evaluation.windows import reason_class
 from transplanter_ident.files import Progress, one_line
@@ -291,25 +291,21 @@ def read_samples(path: str | Path, params: Any,
 
 
 def read_bag(path: str | Path, params: Any, *, truth: bool = True, progress: bool = False,
-             allow_partial: bool = False) -> BagData:
-    """One streaming pass: epochs (via the node's EpochAssembler), rejections, ground truth, counts.
+             allow_partial: bool = False, batch: bool = True) -> BagData:
+    """One pass: epochs (those of the node's EpochAssembler), rejections, ground truth, counts.
+
+    ``batch``: decode and assemble in batches where that gives the same result (:mod:`.batch_read`);
+    False: message by message through the streaming assembler.
 
     Raises :class:`BagError` when the bag cannot be read, an input topic is missing or mistyped,
     or no epoch can be formed; and when fewer (or more) messages could be read than the bag's
     metadata counts (rosbags skips a corrupt MCAP chunk silently), unless ``allow_partial``: then
     the difference is a note.
     """
-    scan = _Scan(path, params, truth=truth, progress=progress)
-    settings = AssemblerSettings.from_params(params)
-    streams = scan.batch()
-    assembler = assemble_batch(settings, streams) if streams is not None else None
-    if assembler is not None:
-        epochs = assembler.epochs
-    else:
-        assembler = EpochAssembler(settings)
-        if streams is None:  # read again, streaming
-            scan = _Scan(path, params, truth=truth, progress=progress)
-        epochs = EpochArrays(assemble(assembler, scan.samples() if streams is None else stream_samples(streams)))
+    def new_scan() -> _Scan:
+        return _Scan(path, params, truth=truth, progress=progress)
+
+    assembler, epochs, scan = assemble_scan(new_scan, AssemblerSettings.from_params(params), batch=batch)
     missing = scan.shortfall()
     if missing and not allow_partial:
         raise BagError(f"{path}: messages read differ from the bag's own counts ({'; '.join(missing)}): a corrupt "

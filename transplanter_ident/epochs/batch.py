@@ -41,6 +41,9 @@ from transplanter_ident.epochs.frames import wrap_angle
 from transplanter_ident.epochs.pairing import PairingStats
 from transplanter_ident.jit import entry_kernel
 
+#: the value columns of a merged sample, and the widths each input comes in (fewer: the add_* defaults)
+WIDTH = 5
+WIDTHS = {"velocity": (2, 4), "velocity_body": (2, 4), "heading_quaternion": (4, 5), "steering": (1,)}
 #: sample kinds (the assembler inputs the bag reader produces) and the guard stream of each
 KINDS = {"velocity": 0, "velocity_body": 1, "heading_quaternion": 2, "steering": 3}
 _STREAM = np.array([0, 0, 1, 2])  # velocity, heading, steering
@@ -94,16 +97,16 @@ def assemble_batch(settings: AssemblerSettings, streams: Sequence[SampleStream])
 
 
 def _merge(streams: Sequence[SampleStream]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """(kind, stamp, values n x 4) in arrival order; velocity variances absent are 0.0, as the defaults."""
+    """(kind, stamp, values n x 5) in arrival order; variances absent are 0.0, as the add_* defaults."""
     total = sum(len(s.keys) for s in streams)
     keys = np.empty(total, dtype=np.int64)
     kind = np.empty(total, dtype=np.int64)
     stamp = np.empty(total)
-    values = np.zeros((total, 4))
+    values = np.zeros((total, WIDTH))
     at = 0
     for s in streams:
         n, width = len(s.keys), s.values.shape[1] if s.values.ndim == 2 else 0
-        if width > 4 or (s.name == "heading_quaternion" and width != 4) or width < (1 if s.name == "steering" else 2):
+        if width not in WIDTHS[s.name]:
             return None
         keys[at:at + n], kind[at:at + n], stamp[at:at + n] = s.keys, KINDS[s.name], s.stamps
         values[at:at + n, :width] = s.values
@@ -127,7 +130,7 @@ def _accepted(settings: AssemblerSettings, kind: np.ndarray, stamp: np.ndarray,
             return None
         if is_vel.any() and max(map(math.hypot, v[is_vel, 0].tolist(), v[is_vel, 1].tolist())) > settings.max_speed:
             return None
-        q = v[is_head]
+        q = v[is_head, :4]
         if not np.isfinite(q).all():
             return None
         norm_sq = q[:, 0] * q[:, 0] + q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2] + q[:, 3] * q[:, 3]
@@ -174,6 +177,8 @@ class _Pairs:
     vx_ant: np.ndarray
     vy_ant: np.ndarray
     yaw: np.ndarray
+    vy_variance: np.ndarray  # frames.lateral_variance of the velocity's variances (0: not given)
+    yaw_variance: np.ndarray  # the heading's reported variance (0: not given)
     done: np.ndarray  # arrival position of the pair's second sample
 
 
@@ -203,21 +208,24 @@ def _pairs(settings: AssemblerSettings, kind: np.ndarray, stamp: np.ndarray, val
         return None
     yaw_h = yaw[h_at] if settings.heading_frame == "enu" else math.pi / 2.0 - yaw[h_at]
     yaw_h = yaw_h - settings.heading_offset
-    vx_ant, vy_ant = _body(settings, kind[v_at], values[v_at, 0], values[v_at, 1], yaw_h)
-    return _Pairs(t, vx_ant, vy_ant, yaw_h, np.maximum(first, second))
+    yaw_variance = np.where(values[h_at, 4] > 0.0, values[h_at, 4], 0.0)
+    vx_ant, vy_ant, vy_variance = _body(settings, kind[v_at], values[v_at], yaw_h)
+    return _Pairs(t, vx_ant, vy_ant, yaw_h, vy_variance, yaw_variance, np.maximum(first, second))
 
 
-def _body(settings: AssemblerSettings, kind: np.ndarray, first: np.ndarray, second: np.ndarray,
-          yaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Body-axis velocity at the antenna (frames.body_velocity, elementwise; ``math`` cos and sin)."""
+def _body(settings: AssemblerSettings, kind: np.ndarray, values: np.ndarray,
+          yaw: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(vx, vy) at the antenna in body axes and vy's variance: frames.body_velocity and lateral_variance, elementwise."""
     enu = kind == 0
-    swap = settings.velocity_frame != "enu"
-    east = np.where(enu & swap, second, first)
-    north = np.where(enu & swap, first, second)
-    angle = np.where(enu, yaw, -settings.body_velocity_rotation)
-    c = np.array(list(map(math.cos, angle.tolist())))
-    s = np.array(list(map(math.sin, angle.tolist())))
-    return c * east + s * north, -s * east + c * north
+    swap = enu & (settings.velocity_frame != "enu")
+    east, north = np.where(swap, values[:, 1], values[:, 0]), np.where(swap, values[:, 0], values[:, 1])
+    var_east, var_north = np.where(swap, values[:, 3], values[:, 2]), np.where(swap, values[:, 2], values[:, 3])
+    turn = np.where(enu, yaw, -settings.body_velocity_rotation)
+    c = np.array(list(map(math.cos, turn.tolist())))
+    s = np.array(list(map(math.sin, turn.tolist())))
+    given = (var_east > 0.0) & (var_north > 0.0)
+    vy_variance = np.where(given, s * s * var_east + c * c * var_north, 0.0)
+    return c * east + s * north, -s * east + c * north, vy_variance
 
 
 def _run(settings: AssemblerSettings, pairs: _Pairs, steer_at: np.ndarray, steer_t: np.ndarray,
@@ -229,9 +237,10 @@ def _run(settings: AssemblerSettings, pairs: _Pairs, steer_at: np.ndarray, steer
     limits = np.array([settings.antenna_x, settings.antenna_y, settings.max_yaw_rate, settings.max_lateral_speed,
                        settings.steering_timeout, settings.steering_buffer, STAMP_EPSILON])
     code = np.full(len(pairs.t), PENDING, dtype=np.int64)
-    rows = np.zeros((len(pairs.t), 9))
+    rows = np.zeros((len(pairs.t), len(ROW_FIELDS)))
     uncovered = _epochs_kernel(is_pair[order], index[order], steer_t, steer_v, pairs.t, pairs.vx_ant, pairs.vy_ant,
-                               pairs.yaw, limits, MAX_STEERING_SAMPLES, REANCHOR_AFTER, code, rows)
+                               pairs.yaw, pairs.vy_variance, pairs.yaw_variance, limits, MAX_STEERING_SAMPLES,
+                               REANCHOR_AFTER, code, rows)
     rejections = []
     for k in np.flatnonzero(code >= YAW_LIMIT).tolist():
         t, row = float(rows[k, 0]), rows[k]
@@ -250,12 +259,12 @@ def _run(settings: AssemblerSettings, pairs: _Pairs, steer_at: np.ndarray, steer
 
 #: the Epoch fields of the kernel's rows, in order (the first fields of :class:`~.epoch.Epoch`)
 ROW_FIELDS = ("t", "longitudinal_velocity", "lateral_velocity", "heading", "yaw_rate", "steering", "steering_rate",
-              "speed", "antenna_lateral_velocity")
+              "speed", "antenna_lateral_velocity", "velocity_variance", "heading_variance", "yaw_rate_variance")
 
 
 @entry_kernel
-def _epochs_kernel(is_pair, index, ts, vs, pt, pvx, pvy, pyaw, limits, max_samples, reanchor,  # noqa: ANN001, ANN201, PLR0913
-                   code, rows):
+def _epochs_kernel(is_pair, index, ts, vs, pt, pvx, pvy, pyaw, pvar, pyvar, limits,  # noqa: ANN001, ANN201, PLR0913
+                   max_samples, reanchor, code, rows):
     """The assembler's steering buffer, pending queue, anchors and epochs, event by event (see the module)."""
     ax, ay, max_yaw_rate, max_lateral = limits[0], limits[1], limits[2], limits[3]
     timeout, keep, eps = limits[4], limits[5], limits[6]
@@ -263,7 +272,7 @@ def _epochs_kernel(is_pair, index, ts, vs, pt, pvx, pvy, pyaw, limits, max_sampl
     last_steering = -np.inf
     pend_lo = pend_hi = 0  # pending pairs
     have_prev = False
-    prev_t = prev_yaw = prev_vx = 0.0
+    prev_t = prev_yaw = prev_vx = prev_yvar = 0.0
     beyond = 0
     uncovered = 0
     for e in range(len(is_pair)):
@@ -289,7 +298,7 @@ def _epochs_kernel(is_pair, index, ts, vs, pt, pvx, pvy, pyaw, limits, max_sampl
             rows[k, 0] = t
             if not have_prev:
                 have_prev = True
-                prev_t, prev_yaw, prev_vx = t, pyaw[k], pvx[k]
+                prev_t, prev_yaw, prev_vx, prev_yvar = t, pyaw[k], pvx[k], pyvar[k]
                 code[k] = 0
                 continue
             unwrapped = prev_yaw + wrap_angle(pyaw[k] - prev_yaw)
@@ -303,12 +312,12 @@ def _epochs_kernel(is_pair, index, ts, vs, pt, pvx, pvy, pyaw, limits, max_sampl
                 code[k] = 2 if abs(yaw_rate) > max_yaw_rate else 3
                 beyond += 1
                 if beyond >= reanchor:
-                    prev_t, prev_yaw, prev_vx = t, pyaw[k], vx
+                    prev_t, prev_yaw, prev_vx, prev_yvar = t, pyaw[k], vx, pyvar[k]
                     beyond = 0
                 continue
             beyond = 0
-            start, start_vx = prev_t, prev_vx
-            prev_t, prev_yaw, prev_vx = t, unwrapped, vx
+            start, start_vx, start_yvar = prev_t, prev_vx, prev_yvar
+            prev_t, prev_yaw, prev_vx, prev_yvar = t, unwrapped, vx, pyvar[k]
             while hi - lo > 1 and ts[lo + 1] <= start:
                 lo += 1
             if hi == lo or ts[hi - 1] < t - timeout or ts[lo] > t:
@@ -322,6 +331,9 @@ def _epochs_kernel(is_pair, index, ts, vs, pt, pvx, pvy, pyaw, limits, max_sampl
             rows[k, 6] = slope
             rows[k, 7] = 0.5 * (start_vx + vx)
             rows[k, 8] = pvy[k]
+            rows[k, 9] = pvar[k]
+            rows[k, 10] = pyvar[k]
+            rows[k, 11] = (start_yvar + pyvar[k]) / (dt * dt) if start_yvar > 0.0 and pyvar[k] > 0.0 else 0.0
     return uncovered
 
 
