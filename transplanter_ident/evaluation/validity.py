@@ -38,6 +38,7 @@ from transplanter_ident.ekf.layout import (
     StepStatus,
 )
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
+from transplanter_ident.evaluation.validity_batch import decide_batch
 
 #: s of data between two evaluations of the window checks
 RECHECK = 1.0
@@ -207,7 +208,7 @@ def _frames_mixed(window: list[Sample]) -> bool:
 
 def _std(values: list[float]) -> float:
     mean = sum(values) / len(values)
-    return math.sqrt(sum((v - mean) ** 2 for v in values) / len(values))
+    return math.sqrt(sum((v - mean) * (v - mean) for v in values) / len(values))  # a product, as validity_batch
 
 
 def _lag1_autocorrelation(values: list[float]) -> float:
@@ -236,8 +237,14 @@ def monitor_for(config: EstimatorConfig, settings: ValiditySettings) -> Validity
 
 def decide_sequence(config: EstimatorConfig, settings: ValiditySettings, epochs: EpochArrays,
                     outputs: np.ndarray) -> np.ndarray:
-    """The validity of every epoch of an offline run (replay), as the node decides it online."""
+    """The validity of every epoch of an offline run (replay), as the node decides it online.
+
+    Computed at once (:mod:`.validity_batch`, the same decisions) unless the times do not strictly increase.
+    """
     monitor = monitor_for(config, settings)
+    valid = decide_batch(settings, monitor.bounds, monitor.lever, RECHECK, epochs, outputs)
+    if valid is not None:
+        return valid
     return np.array([monitor.step(sample_of(epochs[i], outputs[i])).valid for i in range(len(epochs))], dtype=bool)
 
 

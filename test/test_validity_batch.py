@@ -1,0 +1,93 @@
+"""decide_sequence's batch kernel (evaluation/validity_batch.py) makes ValidityMonitor's decisions, epoch for epoch.
+
+Compared on the drives of test_validity.py (clean, stiffness drop, the paper's step, unconfigured
+delays, course-over-ground heading, ENU declared NED) and on outputs perturbed at random (statuses,
+NaN NIS, spread, bounds) under random validity settings, so every check and the hysteresis switch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from drives import run_drive, sine_drive
+from test_validity import CONFIG, SCENARIOS, SETTINGS, epochs_of
+
+from transplanter_ident.config.parameters import ValiditySettings
+from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR_STD, O_NIS, O_STATUS, StepStatus
+from transplanter_ident.evaluation.validity import RECHECK, decide_sequence, monitor_for, sample_of
+from transplanter_ident.evaluation.validity_batch import decide_batch
+from transplanter_ident.sim.simulator import SimResult, simulate
+
+
+def monitor_decisions(settings: ValiditySettings, epochs, outputs) -> np.ndarray:  # noqa: ANN001
+    monitor = monitor_for(CONFIG, settings)
+    return np.array([monitor.step(sample_of(epochs[i], outputs[i])).valid for i in range(len(epochs))], dtype=bool)
+
+
+def _drive(name: str, seed: int):  # noqa: ANN202
+    if name in SCENARIOS:
+        result = simulate(sine_drive(seed, **SCENARIOS[name]))
+        return epochs_of(result), run_drive(result).outputs
+    result = simulate(sine_drive(seed))
+    if name == "course over ground":
+        course = np.arctan2(result.velocity_enu[:, 1], result.velocity_enu[:, 0])
+        epochs = epochs_of(SimResult(**{**result.__dict__, "heading": course}))
+    else:
+        epochs = epochs_of(result, velocity_frame="ned")
+    from transplanter_ident.ekf.joint_ekf import run_sequence
+
+    return epochs, run_sequence(CONFIG, epochs)
+
+
+@pytest.mark.parametrize("name", [*SCENARIOS, "course over ground", "ENU declared NED"])
+def test_same_decisions_on_the_validity_drives(name: str) -> None:
+    for seed in (0, 1):
+        epochs, outputs = _drive(name, seed)
+        expected = monitor_decisions(SETTINGS, epochs, outputs)
+        assert np.array_equal(decide_sequence(CONFIG, SETTINGS, epochs, outputs), expected), (name, seed)
+
+
+def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
+    rng = np.random.default_rng(11)
+    epochs, clean = _drive("clean", 2)
+    statuses = np.array([int(s) for s in StepStatus])
+    flips = 0
+    for case in range(60):
+        outputs = clean.copy()
+        n = len(outputs)
+        for _ in range(int(rng.integers(0, 6))):
+            start = int(rng.integers(0, n))
+            stop = min(n, start + int(rng.integers(1, 300)))
+            what = int(rng.integers(0, 4))
+            if what == 0:
+                outputs[start:stop, O_STATUS] = rng.choice(statuses, stop - start)
+            elif what == 1:
+                outputs[start:stop, O_NIS] = np.where(rng.random(stop - start) < 0.5, math.nan, 40.0)
+            elif what == 2:
+                outputs[start:stop, [O_CF_STD, O_CR_STD]] *= 5.0
+            else:
+                outputs[start:stop, O_CF] = CONFIG.options.stiffness_bounds[1]
+        settings = dataclasses.replace(
+            SETTINGS, window=float(rng.choice((2.0, 5.0, 10.0))), hold_on=float(rng.choice((0.2, 1.0, 3.0))),
+            hold_off=float(rng.choice((0.1, 0.5, 1.0))), max_autocorrelation=float(rng.choice((0.05, 0.3))),
+            max_nonlinear_fraction=float(rng.choice((0.01, 0.2))), min_steering_std=float(rng.choice((0.02, 0.2))),
+            max_sideslip=float(rng.choice((0.02, 0.35))), course_ratio=float(rng.choice((0.2, 5.0))))
+        expected = monitor_decisions(settings, epochs, outputs)
+        got = decide_batch(settings, CONFIG.options.stiffness_bounds, CONFIG.vehicle.lr + CONFIG.vehicle.antenna_x,
+                           RECHECK, epochs, outputs)
+        assert got is not None and np.array_equal(got, expected), f"case {case}"
+        flips += int(np.count_nonzero(np.diff(expected.astype(int))))
+    assert flips > 50  # the cases switch valid on and off, not one constant answer
+
+
+def test_times_that_go_back_use_the_monitor() -> None:
+    epochs, outputs = _drive("clean", 3)
+    t = epochs.t.copy()
+    t[len(t) // 2:] -= 30.0
+    epochs.t[:] = t
+    assert decide_batch(SETTINGS, CONFIG.options.stiffness_bounds, 0.4, RECHECK, epochs, outputs) is None
+    assert np.array_equal(decide_sequence(CONFIG, SETTINGS, epochs, outputs),
+                          monitor_decisions(SETTINGS, epochs, outputs))

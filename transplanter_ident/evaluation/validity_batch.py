@@ -1,0 +1,197 @@
+"""The validity decision of a whole replay at once: :class:`~.validity.ValidityMonitor`'s, bit for bit.
+
+Feeding 72k epochs one by one through the monitor costs about a second of Python, most of it in
+the window checks that run every RECHECK s over ~10 s of data. Offline every epoch is known, so
+the per-epoch terms are computed as columns (with the monitor's own operations; ``math`` where it
+uses ``math``: atan2, remainder and the squares of r and vy, which it takes with ``**``), and a
+compiled kernel runs the monitor's sequence: the window bounds, the window checks with sums in the
+monitor's order, and the hysteresis. Sequences whose times do not strictly increase (the monitor
+would reset) return None, and the caller runs the monitor.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from transplanter_ident.config.parameters import ValiditySettings
+from transplanter_ident.ekf.layout import (
+    O_CF,
+    O_CF_STD,
+    O_CR,
+    O_CR_STD,
+    O_E0,
+    O_NIS,
+    O_S00,
+    O_STATUS,
+    StepStatus,
+)
+from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.jit import entry_kernel
+
+_PREDICTED = (StepStatus.UPDATED, StepStatus.NONLINEAR, StepStatus.GATED)
+
+
+def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever: float, recheck: float,
+                 epochs: EpochArrays, outputs: np.ndarray) -> np.ndarray | None:
+    """The monitor's ``valid`` for every epoch, or None when the times do not strictly increase."""
+    t = np.ascontiguousarray(epochs.t, dtype=np.float64)
+    n = len(t)
+    if n == 0 or not np.all(np.diff(t) > 0.0):
+        return None if n else np.zeros(0, dtype=bool)
+    status = outputs[:, O_STATUS].astype(np.int64)
+    if not np.all(outputs[:, O_STATUS] == status) or not np.isin(status, [int(s) for s in StepStatus]).all():
+        return None
+    predicted = np.isin(status, [int(s) for s in _PREDICTED])
+    speed = np.ascontiguousarray(epochs.speed, dtype=np.float64)
+    vy = np.ascontiguousarray(epochs.antenna_lateral_velocity, dtype=np.float64)
+    r = np.ascontiguousarray(epochs.yaw_rate, dtype=np.float64)
+    cf, cr, cf_std, cr_std = (outputs[:, i] for i in (O_CF, O_CR, O_CF_STD, O_CR_STD))
+    low, high = bounds
+    with np.errstate(divide="ignore", invalid="ignore"):
+        hard = (cf <= low * 1.01) | (cf >= high / 1.01) | (cr <= low * 1.01) | (cr >= high / 1.01)
+        front, rear = cf_std / cf, cr_std / cr
+        worst = np.where(rear > front, rear, front)  # max(front, rear), NaN as Python's max treats it
+        soft = ~predicted | ~(worst <= settings.max_rel_std)
+        s00 = outputs[:, O_S00]
+        whitened = np.divide(outputs[:, O_E0], np.sqrt(np.where(s00 > 0.0, s00, 1.0)), where=s00 > 0.0,
+                             out=np.zeros(n))
+        sideslip = np.abs(vy) / speed
+    nis = np.ascontiguousarray(outputs[:, O_NIS], dtype=np.float64)
+    plaus = np.flatnonzero(predicted & (speed > 0.0))  # the plausibility checks' epochs
+    consist = np.flatnonzero(predicted & np.isfinite(nis))  # the NIS and autocorrelation checks' epochs
+    beta = list(map(math.atan2, vy[plaus].tolist(), speed[plaus].tolist()))
+    tp, rp = t[plaus].tolist(), r[plaus].tolist()
+    rate = np.zeros(len(plaus))  # course change rate from the previous plausibility epoch to this one
+    rate[1:] = [math.remainder(b1 - b0, 2.0 * math.pi) / (t1 - t0)
+                for b0, b1, t0, t1 in zip(beta, beta[1:], tp, tp[1:], strict=False)]
+    r_sq = np.array([x ** 2 for x in rp])
+    vy_sq = np.array([x ** 2 for x in vy[plaus].tolist()])
+    s = settings
+    limits = np.array([s.window, recheck, s.max_sideslip, 0.05 ** 2, s.course_ratio * abs(lever),
+                       s.max_nonlinear_fraction, s.min_steering_std, s.min_yaw_rate_std, s.nis_quantile_sigmas,
+                       s.max_autocorrelation, s.hold_on, s.hold_off])
+    return _decide_kernel(t, status == int(StepStatus.NONLINEAR), hard, soft, np.ascontiguousarray(epochs.steering),
+                          r, plaus, sideslip[plaus], rate, r_sq, vy_sq, consist, nis[consist], whitened[consist],
+                          limits)
+
+
+@entry_kernel
+def _decide_kernel(t, nonlinear, epoch_hard, epoch_soft, steering, r, plaus, sideslip, rate, r_sq, vy_sq,  # noqa: ANN001, ANN201, PLR0913
+                   consist, nis, whitened, limits):
+    """ValidityMonitor.step over the sequence (times strictly increasing): the valid flag of every epoch."""
+    window, recheck, max_sideslip, mixed_floor, course_factor = limits[0], limits[1], limits[2], limits[3], limits[4]
+    max_nonlinear, min_steering_std, min_yaw_rate_std = limits[5], limits[6], limits[7]
+    sigmas, max_rho, hold_on, hold_off = limits[8], limits[9], limits[10], limits[11]
+    n = len(t)
+    valid_out = np.zeros(n, dtype=np.bool_)
+    lo = 0
+    checked_at = -np.inf
+    window_hard = False
+    window_soft = False
+    valid = False
+    good, bad = False, False  # whether good_since / bad_since are set
+    good_since = bad_since = 0.0
+    for i in range(n):
+        while t[lo] < t[i] - window:
+            lo += 1
+        if t[i] - checked_at >= recheck:
+            checked_at = t[i]
+            a = np.searchsorted(plaus, lo)
+            b = np.searchsorted(plaus, i, side="right")
+            window_hard = _plausible_not(a, b, sideslip, rate, r, plaus, r_sq, vy_sq, max_sideslip, mixed_floor,
+                                         course_factor)
+            window_soft = _inconsistent(lo, i, t, window, nonlinear, steering, r, consist, nis, whitened,
+                                        max_nonlinear, min_steering_std, min_yaw_rate_std, sigmas, max_rho)
+        hard = epoch_hard[i] or window_hard
+        if hard or epoch_soft[i] or window_soft:
+            good = False
+            if not bad:
+                bad, bad_since = True, t[i]
+            if hard or t[i] - bad_since >= hold_off:
+                valid = False
+        else:
+            bad = False
+            if not good:
+                good, good_since = True, t[i]
+            if t[i] - good_since >= hold_on:
+                valid = True
+        valid_out[i] = valid
+    return valid_out
+
+
+@entry_kernel
+def _plausible_not(a, b, sideslip, rate, r, plaus, r_sq, vy_sq, max_sideslip, mixed_floor, course_factor):  # noqa: ANN001, ANN201, PLR0913
+    """Whether ValidityMonitor._plausibility finds a reason, over plausibility epochs a..b-1."""
+    count = b - a
+    if count < 5:
+        return False
+    if np.sort(sideslip[a:b])[count // 2] > max_sideslip:
+        return True
+    num = 0.0
+    den = 0.0
+    for j in range(a + 1, b):
+        yaw_rate = r[plaus[j]]
+        num += rate[j] * yaw_rate
+        den += yaw_rate * yaw_rate
+    if den > mixed_floor * count and num / den < -1.0:
+        return True
+    sum_r = 0.0
+    sum_vy = 0.0
+    for j in range(a, b):
+        sum_r += r_sq[j]
+        sum_vy += vy_sq[j]
+    rms_r = np.sqrt(sum_r / count)
+    rms_vy = np.sqrt(sum_vy / count)
+    return rms_r > 0.05 and rms_vy < course_factor * rms_r
+
+
+@entry_kernel
+def _std(values):  # noqa: ANN001, ANN201
+    """validity._std: the population standard deviation, summed in order."""
+    total = 0.0
+    for v in values:
+        total += v
+    mean = total / len(values)
+    square = 0.0
+    for v in values:
+        square += (v - mean) * (v - mean)
+    return np.sqrt(square / len(values))
+
+
+@entry_kernel
+def _inconsistent(lo, i, t, window, nonlinear, steering, r, consist, nis, whitened, max_nonlinear,  # noqa: ANN001, ANN201, PLR0913
+                  min_steering_std, min_yaw_rate_std, sigmas, max_rho):
+    """Whether ValidityMonitor._consistency finds a reason, over epochs lo..i."""
+    count = i - lo + 1
+    if count < 5 or t[i] - t[lo] < 0.5 * window:
+        return True
+    if nonlinear[lo:i + 1].sum() / count > max_nonlinear:
+        return True
+    if _std(steering[lo:i + 1]) < min_steering_std and _std(r[lo:i + 1]) < min_yaw_rate_std:
+        return True
+    a = np.searchsorted(consist, lo)
+    b = np.searchsorted(consist, i, side="right")
+    m = b - a
+    if m < 5:
+        return False
+    total = 0.0
+    for j in range(a, b):
+        total += nis[j]
+    dof = 2 * m
+    if total > dof + sigmas * np.sqrt(2.0 * dof):
+        return True
+    mean = 0.0
+    for j in range(a, b):
+        mean += whitened[j]
+    mean = mean / m
+    power = 0.0
+    for j in range(a, b):
+        power += (whitened[j] - mean) * (whitened[j] - mean)
+    if power <= 0.0:
+        return False
+    lag = 0.0
+    for j in range(a + 1, b):
+        lag += (whitened[j - 1] - mean) * (whitened[j] - mean)
+    return lag / power > max_rho
