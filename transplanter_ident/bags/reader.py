@@ -3,7 +3,8 @@
 A bag is a rosbag2 directory (with ``metadata.yaml``) or a single ``.mcap`` file. The input
 topics are streamed in log-time order as ``(role, stamp, values)`` samples (:mod:`.messages`)
 and turned into epochs by :class:`transplanter_ident.epochs.assembler.EpochAssembler`, the same
-conversion the node uses. Only the wanted connections are read (``Reader.messages``). A
+conversion the node uses. :func:`read_bag` does the same in batches where that gives the same
+result bit for bit (:mod:`.batch_read`, :mod:`transplanter_ident.epochs.batch`). Only the wanted connections are read (``Reader.messages``). A
 simulated bag's ``/sim/*`` ground truth is read alongside.
 
 Every failure is a :class:`~.errors.BagError` with a one-line message naming the bag and the reason.
