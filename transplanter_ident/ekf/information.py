@@ -37,13 +37,17 @@ from transplanter_ident.ekf.layout import (
     X_PSI,
     X_R,
     X_VY,
+    Z_SECOND,
+    Z_VY,
 )
 from transplanter_ident.ekf.model import discretize_heading
 from transplanter_ident.jit import entry_kernel
 
 #: the parameters of the information matrix, in its order
-INFORMATION_PARAMETERS = ("ln_cf", "ln_cr", "steering_offset")
+STIFFNESS_PARAMETERS = ("ln_cf", "ln_cr")
+INFORMATION_PARAMETERS = (*STIFFNESS_PARAMETERS, "steering_offset")
 N_INFORMATION = len(INFORMATION_PARAMETERS)
+I_LN_CF, I_LN_CR, I_OFFSET = range(N_INFORMATION)
 
 
 @entry_kernel
@@ -58,7 +62,7 @@ def output_error_information(epochs, theta, vehicle, antenna_x, r_noise, segment
     Returns the number of epochs that contributed.
     """
     nd = N_MOTION_HEADING
-    cf, cr, offset = math.exp(theta[0]), math.exp(theta[1]), theta[2]
+    cf, cr, offset = math.exp(theta[I_LN_CF]), math.exp(theta[I_LN_CR]), theta[I_OFFSET]
     x = np.zeros(nd)
     new_x = np.zeros(nd)
     sens = np.zeros((nd, N_INFORMATION))
@@ -87,17 +91,17 @@ def output_error_information(epochs, theta, vehicle, antenna_x, r_noise, segment
                 d_f += ws[W_DE_F, i, j] * x[j]
                 d_r += ws[W_DE_R, i, j] * x[j]
             new_x[i] = acc
-            new_sens[i, 0] = d_f
-            new_sens[i, 1] = d_r
-            new_sens[i, 2] = -ws[W_E, i, nd]
+            new_sens[i, I_LN_CF] = d_f
+            new_sens[i, I_LN_CR] = d_r
+            new_sens[i, I_OFFSET] = -ws[W_E, i, nd]
             for p in range(N_INFORMATION):
                 for j in range(nd):
                     new_sens[i, p] += ws[W_E, i, j] * sens[j, p]
         x[:] = new_x
         sens[:, :] = new_sens
         # R of z = [vy_antenna, psi] as the filter takes it, inverted
-        r_psi = r_noise[1]
-        s00, s01, s11 = r_noise[0] + speed * speed * r_psi, -speed * r_psi, r_psi
+        r_psi = r_noise[Z_SECOND]
+        s00, s01, s11 = r_noise[Z_VY] + speed * speed * r_psi, -speed * r_psi, r_psi
         det = s00 * s11 - s01 * s01
         i00, i01, i11 = s11 / det, -s01 / det, s00 / det
         for p in range(N_INFORMATION):

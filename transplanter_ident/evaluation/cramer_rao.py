@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from transplanter_ident.config.parameters import EstimatorConfig
-from transplanter_ident.ekf.information import N_INFORMATION, output_error_information
+from transplanter_ident.ekf.information import N_INFORMATION, STIFFNESS_PARAMETERS, output_error_information
 from transplanter_ident.ekf.joint_ekf import kernel_input
 from transplanter_ident.ekf.layout import EULER, EXACT, O_CF, O_CF_STD, O_CR, O_CR_STD, O_OFFSET
 from transplanter_ident.ekf.model import vehicle_array, work_buffer
@@ -70,11 +70,12 @@ def cramer_rao_bound(config: EstimatorConfig, epochs: EpochArrays, cornering_sti
                                     config.vehicle.antenna_x, np.array(noise.measurement_noise, dtype=np.float64),
                                     segment, options.min_speed, options.max_interval,
                                     EXACT if options.discretization == "exact" else EULER, work_buffer(), information)
-    block = information if options.estimate_steering_offset else information[:2, :2]
+    stiffness = slice(0, len(STIFFNESS_PARAMETERS))
+    block = information if options.estimate_steering_offset else information[stiffness, stiffness]
     if used == 0 or not np.all(np.isfinite(block)):
         return None
     try:
-        covariance = np.linalg.inv(block)[:2, :2]
+        covariance = np.linalg.inv(block)[stiffness, stiffness]
     except np.linalg.LinAlgError:
         return None
     if not (np.all(np.isfinite(covariance)) and covariance[0, 0] > 0.0 and covariance[1, 1] > 0.0):
