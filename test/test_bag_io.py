@@ -69,20 +69,21 @@ def _messages(frame_id: str, rng: np.random.Generator, joint_names: list[str]):
     covariance = rng.normal(size=36)
     twist_cov = T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=covariance)
     point = T["geometry_msgs/msg/Point"](x=1.0, y=2.0, z=3.0)
+    pose_covariance, orientation_covariance = rng.normal(size=36), rng.normal(size=9)
     pose_cov = T["geometry_msgs/msg/PoseWithCovariance"](pose=T["geometry_msgs/msg/Pose"](
-        position=point, orientation=quat(*q)), covariance=rng.normal(size=36))
+        position=point, orientation=quat(*q)), covariance=pose_covariance)
     return {
         bag_io.TWIST_STAMPED: (T[bag_io.TWIST_STAMPED](header=head, twist=twist), (lin.x, lin.y)),
         bag_io.TWIST_COV_STAMPED: (T[bag_io.TWIST_COV_STAMPED](header=head, twist=twist_cov),
                                    (lin.x, lin.y, covariance[0], covariance[7])),
         bag_io.ODOMETRY: (T[bag_io.ODOMETRY](header=head, child_frame_id="base_link", pose=pose_cov, twist=twist_cov),
                           (lin.x, lin.y, covariance[0], covariance[7])),
-        bag_io.POSE_COV_STAMPED: (T[bag_io.POSE_COV_STAMPED](header=head, pose=pose_cov), tuple(q)),
+        bag_io.POSE_COV_STAMPED: (T[bag_io.POSE_COV_STAMPED](header=head, pose=pose_cov), (*q, pose_covariance[35])),
         bag_io.QUATERNION_STAMPED: (T[bag_io.QUATERNION_STAMPED](header=head, quaternion=quat(*q)), tuple(q)),
-        bag_io.IMU: (T[bag_io.IMU](header=head, orientation=quat(*q), orientation_covariance=rng.normal(size=9),
+        bag_io.IMU: (T[bag_io.IMU](header=head, orientation=quat(*q), orientation_covariance=orientation_covariance,
                                    angular_velocity=ang, angular_velocity_covariance=np.zeros(9),
                                    linear_acceleration=lin, linear_acceleration_covariance=np.zeros(9)),
-                     tuple(q)),
+                     (*q, orientation_covariance[8])),  # the yaw variance rides along (issue #12 item 5)
         bag_io.JOINT_STATE: (T[bag_io.JOINT_STATE](header=head, name=joint_names, position=positions,
                                                    velocity=positions * 2, effort=empty),
                              (float(positions[joint_names.index("front_steering")]),)),
@@ -105,7 +106,7 @@ def test_decode_message_every_type(little_endian: bool) -> None:
     data = bytes(TS.serialize_cdr(odometry, bag_io.ODOMETRY))
     orientation = odometry.pose.pose.orientation
     assert decode_message(bag_io.ODOMETRY, data, log_ns, role="heading")[1] == (
-        orientation.x, orientation.y, orientation.z, orientation.w)
+        orientation.x, orientation.y, orientation.z, orientation.w, odometry.pose.covariance[35])
 
 
 def test_quaternion_yaw_round_trip() -> None:

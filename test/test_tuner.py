@@ -131,6 +131,8 @@ def test_pso_and_nll_and_small_swarm(sample_bags, tmp_path, capsys) -> None:  # 
                        "--particles", "4", "--iterations", "3", "--seed", "0"]) == 0
     captured = capsys.readouterr()
     assert "pso: nll" in captured.out
+    bound = next(line for line in captured.out.splitlines() if "Cramér-Rao bound" in line)  # issue #11 item 2
+    assert "of it" in bound and "weakest along" in bound, bound
     assert sum(line.startswith("iteration") for line in captured.err.splitlines()) == 4
     assert "algorithm: pso, objective: nll" in out.read_text()
 

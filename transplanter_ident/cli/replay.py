@@ -122,6 +122,7 @@ def _run(args: argparse.Namespace) -> int:
     from transplanter_ident.config.params_file import parameter_value
     from transplanter_ident.ekf.joint_ekf import run_sequence
     from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD, O_OFFSET
+    from transplanter_ident.evaluation.cramer_rao import final_bound_line
     from transplanter_ident.evaluation.metrics import format_table2, propagated, stiffness_error, table2_row
     from transplanter_ident.evaluation.validity import decide_sequence
 
@@ -147,6 +148,7 @@ def _run(args: argparse.Namespace) -> int:
           f"Cr = {last[O_CR]:.1f} +- {last[O_CR_STD]:.1f} N/rad, steering offset "
           f"{math.degrees(last[O_OFFSET]):+.3f} deg; {'valid' if len(valid) and valid[-1] else 'NOT valid'} "
           f"(valid in {100 * float(np.mean(valid)) if len(valid) else 0.0:.0f} % of epochs)")
+    print(final_bound_line(params.config, epochs, last))
     if data.truth is not None:
         true_f, true_r = data.truth.at(epochs.t)
         err = stiffness_error(outputs, true_f, true_r)

@@ -43,6 +43,7 @@ from transplanter_ident.cli.util import CliError, cli_main
 from transplanter_ident.config.params_file import EstimatorParams, load_params
 from transplanter_ident.config.params_writer import write_params_yaml
 from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.evaluation.cramer_rao import final_bound_line
 from transplanter_ident.files import atomic_output_dir
 from transplanter_ident.tuning.multi import MultiBagProblem, leave_one_out
 from transplanter_ident.tuning.parallel import (
@@ -264,8 +265,9 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
                           header_comment(outcome, args.bags, [len(e) for e in epochs]))
     print(f"{args.algorithm}: {args.objective} {outcome.start_fitness:.6g} -> {result.fitness:.6g} "
           f"({result.evaluations} evaluations, {outcome.seconds:.1f} s, seed {outcome.seed}); wrote {args.output}")
-    for bag, comparison in zip(args.bags, comparisons, strict=True):
+    for bag, comparison, bag_epochs in zip(args.bags, comparisons, epochs, strict=True):
         print(comparison.format(f"Table 2 on {bag}"))
+        print(f"  tuned Q/R, {final_bound_line(outcome.tuned_config, bag_epochs, comparison.tuned_outputs[-1])}")
     if holdout is not None:
         print(holdout.format())
     if args.report:

@@ -31,6 +31,8 @@ from transplanter_ident.config.parameters import VehicleParams
 from transplanter_ident.ekf.layout import (
     EULER,
     EXACT,
+    N_MOTION_HEADING,
+    N_MOTION_YAW_RATE,
     VEH_IZ,
     VEH_LF,
     VEH_LR,
@@ -76,7 +78,7 @@ def continuous_matrix(cf, cr, vx, vehicle, with_heading, ws):
     reads only rows < nd (``mul_top`` takes the input rows [[0, 1], [0, 0]] as arguments).
     """
     mass, lf, lr, iz = vehicle[VEH_MASS], vehicle[VEH_LF], vehicle[VEH_LR], vehicle[VEH_IZ]
-    nd = 3 if with_heading else 2
+    nd = N_MOTION_HEADING if with_heading else N_MOTION_YAW_RATE
     for s in range(W_M, W_DM_R + 1):  # M is (nd + 2) square; the rest of the 5 x 5 slot is not part of it
         for i in range(nd + 2):
             for j in range(nd + 2):
@@ -140,7 +142,7 @@ def _make_discretize(nd):
 
     @sized_kernel
     def discretize_fixed(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, ws):
-        continuous_matrix(cf, cr, vx, vehicle, nd == 3, ws)
+        continuous_matrix(cf, cr, vx, vehicle, nd == N_MOTION_HEADING, ws)
         for i in range(nd):
             for j in range(size):
                 ws[W_DM_F, i, j] *= dcf_dtheta
@@ -199,8 +201,8 @@ def _make_discretize(nd):
     return discretize_fixed
 
 
-discretize_yaw_rate = _make_discretize(2)
-discretize_heading = _make_discretize(3)
+discretize_yaw_rate = _make_discretize(N_MOTION_YAW_RATE)
+discretize_heading = _make_discretize(N_MOTION_HEADING)
 
 
 @entry_kernel
@@ -233,7 +235,7 @@ def discrete_matrices(
     code = EXACT if method == "exact" else EULER
     discretize(cornering_stiffness_front, cornering_stiffness_rear, 1.0, 1.0, speed, dt,
                vehicle_array(vehicle), with_heading, code, ws)
-    nd = 3 if with_heading else 2
+    nd = N_MOTION_HEADING if with_heading else N_MOTION_YAW_RATE
     return ws[W_E, :nd, :nd].copy(), ws[W_E, :nd, nd].copy()
 
 

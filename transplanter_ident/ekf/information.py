@@ -1,0 +1,115 @@
+"""Output-error Fisher information of (ln Cf, ln Cr, b) from a drive (issue #11: the Cramér-Rao bound).
+
+The bicycle model (paper eq. 4, discretised as the filter does, :mod:`.model`) is driven by the
+measured steering and speed and started from the measured state [vy, r, psi]; it is restarted
+every ``segment`` seconds (multiple shooting), after a gap and below ``min_speed``, so that an
+open-loop heading never runs away. Its output sensitivities to theta = (ln Cf, ln Cr) and to the
+steering offset b are carried forward exactly with dE/dtheta of :func:`.model.discretize`:
+
+    S_{k+1} = E S_k + [dE/dtheta_f u_k, dE/dtheta_r u_k, -E[:, delta]]     (u_k = [x_k; delta; rate])
+
+and the information of the measurements z = [vy + antenna_x r, psi], whose noise is the
+filter's full R (:mod:`.kernels`: the body-frame vy error holds -vx e_psi), is summed:
+
+    I = sum_k H S_k^T R_k^-1 H S_k      (3 x 3, over ln Cf, ln Cr, b)
+
+Its inverse is the Cramér-Rao bound of an unbiased estimate from these data at that theta.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from transplanter_ident.ekf.layout import (
+    E_PSI,
+    E_SPEED,
+    E_STEERING,
+    E_STEERING_RATE,
+    E_T,
+    E_VY,
+    E_YAW_RATE,
+    N_MOTION_HEADING,
+    W_DE_F,
+    W_DE_R,
+    W_E,
+    X_PSI,
+    X_R,
+    X_VY,
+    Z_SECOND,
+    Z_VY,
+)
+from transplanter_ident.ekf.model import discretize_heading
+from transplanter_ident.jit import entry_kernel
+
+#: the parameters of the information matrix, in its order
+STIFFNESS_PARAMETERS = ("ln_cf", "ln_cr")
+INFORMATION_PARAMETERS = (*STIFFNESS_PARAMETERS, "steering_offset")
+N_INFORMATION = len(INFORMATION_PARAMETERS)
+I_LN_CF, I_LN_CR, I_OFFSET = range(N_INFORMATION)
+
+
+@entry_kernel
+def output_error_information(epochs, theta, vehicle, antenna_x, r_noise, segment, min_speed, max_interval,  # noqa: ANN001, ANN201, PLR0913
+                             method, ws, information):
+    """Add the Fisher information of ``epochs`` (kernel columns E_*) at ``theta`` to ``information`` (3, 3).
+
+    theta : (3,)  ln Cf, ln Cr, steering offset b (rad)
+    vehicle : (4,)  model.vehicle_array
+    r_noise : (2,)  diag R of vy (m/s)^2 and psi rad^2
+    ws : model.work_buffer()
+    Returns the number of epochs that contributed.
+    """
+    nd = N_MOTION_HEADING
+    cf, cr, offset = math.exp(theta[I_LN_CF]), math.exp(theta[I_LN_CR]), theta[I_OFFSET]
+    x = np.zeros(nd)
+    new_x = np.zeros(nd)
+    sens = np.zeros((nd, N_INFORMATION))
+    new_sens = np.zeros((nd, N_INFORMATION))
+    start = -math.inf
+    used = 0
+    for k in range(epochs.shape[0]):
+        t, speed = epochs[k, E_T], epochs[k, E_SPEED]
+        dt = t - epochs[k - 1, E_T] if k > 0 else math.inf
+        if speed < min_speed or not dt <= max_interval or t - start >= segment:
+            x[X_VY] = epochs[k, E_VY] - antenna_x * epochs[k, E_YAW_RATE]
+            x[X_R] = epochs[k, E_YAW_RATE]
+            x[X_PSI] = epochs[k, E_PSI]
+            sens[:, :] = 0.0
+            start = t
+            continue
+        rate = epochs[k, E_STEERING_RATE]
+        delta = epochs[k, E_STEERING] - offset - 0.5 * rate * dt  # the ramp's start, as the filter drives it
+        discretize_heading(cf, cr, cf, cr, speed, dt, vehicle, method, ws)
+        for i in range(nd):
+            acc = ws[W_E, i, nd] * delta + ws[W_E, i, nd + 1] * rate
+            d_f = ws[W_DE_F, i, nd] * delta + ws[W_DE_F, i, nd + 1] * rate
+            d_r = ws[W_DE_R, i, nd] * delta + ws[W_DE_R, i, nd + 1] * rate
+            for j in range(nd):
+                acc += ws[W_E, i, j] * x[j]
+                d_f += ws[W_DE_F, i, j] * x[j]
+                d_r += ws[W_DE_R, i, j] * x[j]
+            new_x[i] = acc
+            new_sens[i, I_LN_CF] = d_f
+            new_sens[i, I_LN_CR] = d_r
+            new_sens[i, I_OFFSET] = -ws[W_E, i, nd]
+            for p in range(N_INFORMATION):
+                for j in range(nd):
+                    new_sens[i, p] += ws[W_E, i, j] * sens[j, p]
+        x[:] = new_x
+        sens[:, :] = new_sens
+        # R of z = [vy_antenna, psi] as the filter takes it, inverted
+        r_psi = r_noise[Z_SECOND]
+        s00, s01, s11 = r_noise[Z_VY] + speed * speed * r_psi, -speed * r_psi, r_psi
+        det = s00 * s11 - s01 * s01
+        i00, i01, i11 = s11 / det, -s01 / det, s00 / det
+        for p in range(N_INFORMATION):
+            h0p = sens[X_VY, p] + antenna_x * sens[X_R, p]
+            h1p = sens[X_PSI, p]
+            for q in range(N_INFORMATION):
+                h0q = sens[X_VY, q] + antenna_x * sens[X_R, q]
+                h1q = sens[X_PSI, q]
+                information[p, q] += h0p * (i00 * h0q + i01 * h1q) + h1p * (i01 * h0q + i11 * h1q)
+        used += 1
+    return used

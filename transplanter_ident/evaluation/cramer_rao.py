@@ -1,0 +1,93 @@
+"""The Cramér-Rao bound of the stiffness from one drive, and how the filter's sigma compares (issue #11).
+
+:func:`cramer_rao_bound` sums the output-error Fisher information of (ln Cf, ln Cr, b) at an
+estimate (:mod:`transplanter_ident.ekf.information`) and inverts it. With the steering offset
+estimated, the offset is a nuisance parameter: the bound of (ln Cf, ln Cr) is the 2 x 2 block of
+the inverse of the full 3 x 3 information; with a fixed offset, the inverse of the 2 x 2 block.
+
+The bound is local: it is the curvature of the likelihood at the estimate. Where the data hardly
+pin the stiffness (the paper's slow held step), it depends strongly on where it is evaluated, so
+it tells which direction is weak rather than how far off a wrong estimate is. A filter sigma
+well below the bound means the filter claims more than the data hold.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from transplanter_ident.config.parameters import EstimatorConfig
+from transplanter_ident.ekf.information import N_INFORMATION, STIFFNESS_PARAMETERS, output_error_information
+from transplanter_ident.ekf.joint_ekf import kernel_input
+from transplanter_ident.ekf.layout import EULER, EXACT, O_CF, O_CF_STD, O_CR, O_CR_STD, O_OFFSET
+from transplanter_ident.ekf.model import vehicle_array, work_buffer
+from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.evaluation.validity import Identifiability
+
+#: s: the open-loop model restarts from the measured state this often (multiple shooting)
+SEGMENT = 10.0
+
+
+@dataclass(frozen=True)
+class CramerRaoBound:
+    """The bound of (ln Cf, ln Cr) at an estimate: its covariance and how many epochs gave information."""
+
+    covariance: np.ndarray  # (2, 2): (ln Cf, ln Cr); the relative variances of Cf and Cr
+    epochs: int
+
+    @property
+    def relative_std(self) -> tuple[float, float]:
+        """1-sigma of ln Cf and ln Cr, i.e. the relative 1-sigma of Cf and Cr."""
+        return math.sqrt(max(self.covariance[0, 0], 0.0)), math.sqrt(max(self.covariance[1, 1], 0.0))
+
+    @property
+    def identifiability(self) -> Identifiability:
+        front, rear = self.relative_std
+        denominator = front * rear
+        correlation = float(self.covariance[0, 1] / denominator) if denominator > 0.0 else 0.0
+        return Identifiability.of(front, rear, max(-1.0, min(1.0, correlation)))
+
+    def describe(self, filter_relative_std: tuple[float, float]) -> str:
+        """One line: the bound, the filter's sigma as a multiple of it, and the weak direction."""
+        front, rear = self.relative_std
+        ratios = [f"{s / b:.2g}x" if b > 0.0 else "-" for s, b in zip(filter_relative_std, (front, rear), strict=True)]
+        return (f"Cramér-Rao bound at the final estimate ({self.epochs} epochs, output error over {SEGMENT:g} s "
+                f"segments): Cf +- {100 * front:.3g} %, Cr +- {100 * rear:.3g} %; the filter's 1-sigma is "
+                f"{ratios[0]} / {ratios[1]} of it; {self.identifiability.describe()}")
+
+
+def cramer_rao_bound(config: EstimatorConfig, epochs: EpochArrays, cornering_stiffness: tuple[float, float],
+                     steering_offset: float, segment: float = SEGMENT) -> CramerRaoBound | None:
+    """The bound at (Cf, Cr, offset) from these epochs; None in yaw_rate mode or without information."""
+    options, noise = config.options, config.noise
+    if options.measurement != "heading" or len(epochs) < 2 or min(cornering_stiffness) <= 0.0:
+        return None
+    information = np.zeros((N_INFORMATION, N_INFORMATION))
+    theta = np.array([math.log(cornering_stiffness[0]), math.log(cornering_stiffness[1]), steering_offset])
+    used = output_error_information(kernel_input(epochs), theta, vehicle_array(config.vehicle),
+                                    config.vehicle.antenna_x, np.array(noise.measurement_noise, dtype=np.float64),
+                                    segment, options.min_speed, options.max_interval,
+                                    EXACT if options.discretization == "exact" else EULER, work_buffer(), information)
+    stiffness = slice(0, len(STIFFNESS_PARAMETERS))
+    block = information if options.estimate_steering_offset else information[stiffness, stiffness]
+    if used == 0 or not np.all(np.isfinite(block)):
+        return None
+    try:
+        covariance = np.linalg.inv(block)[stiffness, stiffness]
+    except np.linalg.LinAlgError:
+        return None
+    if not (np.all(np.isfinite(covariance)) and covariance[0, 0] > 0.0 and covariance[1, 1] > 0.0):
+        return None
+    return CramerRaoBound(covariance, int(used))
+
+
+def final_bound_line(config: EstimatorConfig, epochs: EpochArrays, final_row: np.ndarray) -> str:
+    """The line replay and tuner print for a bag: the bound at the filter's final estimate (an output row)."""
+    stiffness = (float(final_row[O_CF]), float(final_row[O_CR]))
+    bound = cramer_rao_bound(config, epochs, stiffness, float(final_row[O_OFFSET]))
+    if bound is None:
+        why = "yaw_rate mode" if config.options.measurement != "heading" else "no informative epochs"
+        return f"Cramér-Rao bound: not computed ({why})"
+    return bound.describe((float(final_row[O_CF_STD]) / stiffness[0], float(final_row[O_CR_STD]) / stiffness[1]))
