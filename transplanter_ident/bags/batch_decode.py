@@ -40,7 +40,8 @@ from transplanter_ident.bags.messages import (
 from transplanter_ident.epochs.frames import YAW_VARIANCE_IMU, YAW_VARIANCE_POSE
 
 CDR_LE = b"\x00\x01\x00\x00"
-#: templates tried per message length of a connection before the rest go one by one
+#: templates tried per message length of a connection before the rest go one by one (a message that cannot
+#: be one goes one by one itself)
 MAX_TEMPLATES = 4
 #: the byte offset of the CDR payload (after the encapsulation header)
 PAYLOAD = 4
@@ -194,7 +195,9 @@ def decode_connection(msgtype: str, role: str, extract: Extract, joint: str, ind
                 break
             layout = _template_layout(msgtype, role, extract, joint, rows[0].tobytes(), int(log_ns[members[0]]))
             if layout is None or layout.size != length or len(layout.fields) != width:
-                break
+                slow.append(index[members[:1]])  # this one goes alone; the next may serve as the template
+                members, rows = members[1:], rows[1:]
+                continue
             mask = _structure_mask(layout)
             match = np.all(rows[:, mask] == rows[0, mask], axis=1)
             stamps, values = _columns(rows[match], layout, log_ns[members[match]])
