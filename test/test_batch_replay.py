@@ -41,15 +41,20 @@ SAMPLE_BAGS = ("sine", "step20-ccw", "step30-cw", "surface-change")
 DRIVERS = ("nmea", "odometry", "septentrio", "swiftnav", "ublox")
 #: (name, simulate arguments, whether the batch assembler must apply)
 SIMULATED = (
-    *((f"driver-{d}", ["--driver", d], d not in ("septentrio", "swiftnav")) for d in DRIVERS),
+    *((f"driver-{d}", ["--driver", d], d != "swiftnav") for d in DRIVERS),  # swiftnav: markers leave partners unpaired
     ("gnss10-first", ["--gnss-rate", "10", "--gnss-first"], True),
     ("ned-20hz", ["--gnss-rate", "20", "--velocity-frame", "ned", "--heading-frame", "ned"], True),
     ("delay", ["--gnss-delay", "0.08"], True),
-    ("float64-jitter", ["--steering-type", "float64", "--heading-lag", "0.01", "--heading-lag-jitter", "0.005"], False),
+    ("float64-jitter", ["--steering-type", "float64", "--heading-lag", "0.01", "--heading-lag-jitter", "0.005"], True),
     ("odometry-imu", ["--velocity-type", "odometry", "--heading-type", "imu"], True),
     ("pose-cov-late-start", ["--heading-type", "pose-cov", "--start-time", "1000"], True),
     ("antenna-offset", ["--antenna-x", "0.6", "--antenna-y", "0.2", "--steering-offset", "0.01"], True),
     ("step-2hz", ["--scenario", "step20-ccw", "--gnss-rate", "2", "--steering-rate", "7"], True),
+    ("reported-noise-imu", ["--report-noise", "--velocity-type", "twist-cov", "--heading-type", "imu",
+                            "--gnss-degraded", "10", "20", "3"], True),
+    ("reported-noise-septentrio", ["--driver", "septentrio", "--report-noise"], True),
+    ("reported-noise-pose-ned", ["--report-noise", "--velocity-type", "twist-cov", "--heading-type", "pose-cov",
+                                 "--velocity-frame", "ned", "--heading-frame", "ned"], True),
 )
 
 

@@ -3,6 +3,8 @@
 The streaming assembler costs a few microseconds of Python per sample; a 1 h, 20 Hz bag has ~324k
 samples. Offline all samples are known, so this module
 
+0. takes out the samples rejected on their own values (:mod:`.early_rejections`: NaN, invalid
+   markers, limits of speed and steering, bad quaternions), which the assembler's state never sees;
 1. checks, vectorised, that every sample would be *accepted* by the streaming assembler and that
    velocity and heading pair one to one with nothing given up: finite values, no invalid markers,
    quaternions of norm 1, speeds and steering angles within their limits, every stamp consistent
@@ -15,8 +17,8 @@ samples. Offline all samples are known, so this module
    and :func:`~.steering_line.interval_line`, with the same floating-point operations in the same
    order (the trigonometry is done in Python's ``math``, as the assembler does).
 
-Anything else (an outlier stamp, a NaN, a sample given up by the pairer, a resync, the
-``heading`` yaw input) returns None, and the caller feeds the same samples to the streaming
+Anything else (an outlier stamp, a sample given up by the pairer, a resync, the ``heading``
+yaw input) returns None, and the caller feeds the same samples to the streaming
 assembler. Either way the epochs, rejections and counters are bit for bit those of the streaming
 assembler (a test compares them on clean, driver-shaped, gapped and fuzzed bags).
 """
@@ -36,6 +38,7 @@ from transplanter_ident.epochs.assembler import (
     STAMP_EPSILON,
     AssemblerSettings,
 )
+from transplanter_ident.epochs.early_rejections import KINDS, early_rejections, stateless_bad
 from transplanter_ident.epochs.epoch import EpochArrays, Rejection
 from transplanter_ident.epochs.frames import wrap_angle
 from transplanter_ident.epochs.pairing import PairingStats
@@ -44,9 +47,8 @@ from transplanter_ident.jit import entry_kernel
 #: the value columns of a merged sample, and the widths each input comes in (fewer: the add_* defaults)
 WIDTH = 5
 WIDTHS = {"velocity": (2, 4), "velocity_body": (2, 4), "heading_quaternion": (4, 5), "steering": (1,)}
-#: sample kinds (the assembler inputs the bag reader produces) and the guard stream of each
-KINDS = {"velocity": 0, "velocity_body": 1, "heading_quaternion": 2, "steering": 3}
-_STREAM = np.array([0, 0, 1, 2])  # velocity, heading, steering
+#: the guard stream of each kind: velocity, heading, steering
+_STREAM = np.array([0, 0, 1, 2])
 
 # per-pair outcome codes of the kernel
 PENDING, ANCHOR, EPOCH, YAW_LIMIT, LATERAL_LIMIT, NO_STEERING = -1, 0, 1, 2, 3, 4
@@ -85,15 +87,20 @@ def assemble_batch(settings: AssemblerSettings, streams: Sequence[SampleStream])
     if merged is None:
         return None
     kind, stamp, values = merged
-    accepted = _accepted(settings, kind, stamp, values)
-    if accepted is None:
+    bad = stateless_bad(settings, kind, stamp, values)
+    early = early_rejections(settings, kind, stamp, values, bad)
+    if early is None:
         return None
-    yaw = accepted
+    position = np.flatnonzero(~bad)  # arrival positions of the samples the assembler's state sees
+    kind, stamp, values = kind[position], stamp[position], values[position]
+    yaw = _accepted(settings, kind, stamp, values)
+    if yaw is None:
+        return None
     pairs = _pairs(settings, kind, stamp, values, yaw)
     if pairs is None:
         return None
     steer = np.flatnonzero(kind == KINDS["steering"])
-    return _run(settings, pairs, steer, stamp[steer], values[steer, 0])
+    return _run(settings, pairs, steer, stamp[steer], values[steer, 0], position, early)
 
 
 def _merge(streams: Sequence[SampleStream]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -229,7 +236,7 @@ def _body(settings: AssemblerSettings, kind: np.ndarray, values: np.ndarray,
 
 
 def _run(settings: AssemblerSettings, pairs: _Pairs, steer_at: np.ndarray, steer_t: np.ndarray,
-         steer_v: np.ndarray) -> BatchResult:
+         steer_v: np.ndarray, position: np.ndarray, early: list[tuple[int, Rejection]]) -> BatchResult:
     events = np.concatenate((steer_at, pairs.done))
     is_pair = np.concatenate((np.zeros(len(steer_at), np.int64), np.ones(len(pairs.done), np.int64)))
     index = np.concatenate((np.arange(len(steer_at)), np.arange(len(pairs.done))))
@@ -237,24 +244,27 @@ def _run(settings: AssemblerSettings, pairs: _Pairs, steer_at: np.ndarray, steer
     limits = np.array([settings.antenna_x, settings.antenna_y, settings.max_yaw_rate, settings.max_lateral_speed,
                        settings.steering_timeout, settings.steering_buffer, STAMP_EPSILON])
     code = np.full(len(pairs.t), PENDING, dtype=np.int64)
+    formed = np.zeros(len(pairs.t), dtype=np.int64)  # the event that formed each pair's epoch
     rows = np.zeros((len(pairs.t), len(ROW_FIELDS)))
     uncovered = _epochs_kernel(is_pair[order], index[order], steer_t, steer_v, pairs.t, pairs.vx_ant, pairs.vy_ant,
                                pairs.yaw, pairs.vy_variance, pairs.yaw_variance, limits, MAX_STEERING_SAMPLES,
-                               REANCHOR_AFTER, code, rows)
-    rejections = []
+                               REANCHOR_AFTER, code, rows, formed)
+    at = position[events[order][formed]]  # arrival position of the sample whose add_* formed it
+    rejections: list[tuple[int, Rejection]] = list(early)
     for k in np.flatnonzero(code >= YAW_LIMIT).tolist():
         t, row = float(rows[k, 0]), rows[k]
         if code[k] == YAW_LIMIT:
-            rejections.append(Rejection("heading", t, f"yaw rate {row[4]:+.3g} rad/s beyond vehicle.max_yaw_rate "
-                                        f"{settings.max_yaw_rate:g}", checks.YAW_RATE_LIMIT))
+            rejection = Rejection("heading", t, f"yaw rate {row[4]:+.3g} rad/s beyond vehicle.max_yaw_rate "
+                                  f"{settings.max_yaw_rate:g}", checks.YAW_RATE_LIMIT)
         elif code[k] == LATERAL_LIMIT:
-            rejections.append(Rejection("velocity", t, f"lateral speed {row[2]:+.3g} m/s beyond "
-                                        f"vehicle.max_lateral_speed {settings.max_lateral_speed:g}",
-                                        checks.LATERAL_SPEED_LIMIT))
+            rejection = Rejection("velocity", t, f"lateral speed {row[2]:+.3g} m/s beyond vehicle.max_lateral_speed "
+                                  f"{settings.max_lateral_speed:g}", checks.LATERAL_SPEED_LIMIT)
         else:
-            rejections.append(Rejection("epoch", t, "no recent steering angle", checks.NO_STEERING))
+            rejection = Rejection("epoch", t, "no recent steering angle", checks.NO_STEERING)
+        rejections.append((int(at[k]), rejection))
+    rejections.sort(key=lambda item: item[0])  # stable: in the order the assembler makes them
     stats = PairingStats(pairs=len(pairs.t), tolerance=settings.match_tolerance)
-    return BatchResult(EpochArrays.from_rows(rows[code == EPOCH]), rejections, stats, int(uncovered))
+    return BatchResult(EpochArrays.from_rows(rows[code == EPOCH]), [r for _, r in rejections], stats, int(uncovered))
 
 
 #: the Epoch fields of the kernel's rows, in order (the first fields of :class:`~.epoch.Epoch`)
@@ -264,7 +274,7 @@ ROW_FIELDS = ("t", "longitudinal_velocity", "lateral_velocity", "heading", "yaw_
 
 @entry_kernel
 def _epochs_kernel(is_pair, index, ts, vs, pt, pvx, pvy, pyaw, pvar, pyvar, limits,  # noqa: ANN001, ANN201, PLR0913
-                   max_samples, reanchor, code, rows):
+                   max_samples, reanchor, code, rows, formed):
     """The assembler's steering buffer, pending queue, anchors and epochs, event by event (see the module)."""
     ax, ay, max_yaw_rate, max_lateral = limits[0], limits[1], limits[2], limits[3]
     timeout, keep, eps = limits[4], limits[5], limits[6]
@@ -295,6 +305,7 @@ def _epochs_kernel(is_pair, index, ts, vs, pt, pvx, pvy, pyaw, pvar, pyvar, limi
             if not covered and have_prev:
                 uncovered += 1
             pend_lo += 1
+            formed[k] = e
             rows[k, 0] = t
             if not have_prev:
                 have_prev = True
