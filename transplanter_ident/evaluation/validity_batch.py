@@ -40,6 +40,8 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
     n = len(t)
     if n == 0 or not np.all(np.diff(t) > 0.0):
         return None if n else np.zeros(0, dtype=bool)
+    if not np.isfinite(outputs[:, O_STATUS]).all():
+        return None
     status = outputs[:, O_STATUS].astype(np.int64)
     if not np.all(outputs[:, O_STATUS] == status) or not np.isin(status, [int(s) for s in StepStatus]).all():
         return None
