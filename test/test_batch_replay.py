@@ -308,3 +308,18 @@ def test_group_decoding_equals_message_by_message() -> None:
             for i in (decoded.slow - 100).tolist():  # left to the per-message path: odd, or unusable
                 with contextlib.suppress(*_DECODE_ERRORS, _Unusable):
                     extract(TYPESTORE.deserialize_cdr(datas[i], msgtype), int(log_ns[i]), joint)
+
+
+def test_small_chunks_give_the_same(base: fuzz_bags.Base, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Decoding in chunks of a few messages (groups and the per-message rest across chunk ends) changes nothing."""
+    from transplanter_ident.bags import batch_read
+
+    rng = random.Random(7)
+    bags = [ROOT / "bags" / "sine", base.path]
+    for i, mutation in enumerate((fuzz_bags.bad_fields, fuzz_bags.bad_orientation_or_joint, fuzz_bags.drop_or_repeat)):
+        mutation(rng, base).write(tmp_path / f"bag{i}")
+        bags.append(tmp_path / f"bag{i}")
+    for chunk in (1, 37, 1000):
+        monkeypatch.setattr(batch_read, "CHUNK", chunk)
+        for bag in bags:
+            assert_same(bag)

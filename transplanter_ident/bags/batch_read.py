@@ -10,7 +10,7 @@ as :class:`~transplanter_ident.epochs.batch.SampleStream` columns keyed by arriv
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -23,6 +23,8 @@ from transplanter_ident.epochs.batch import BatchResult, SampleStream, assemble_
 from transplanter_ident.epochs.epoch import EpochArrays, Rejection
 from transplanter_ident.files import Progress
 
+#: messages decoded together (bounds the memory of the bytes held at once)
+CHUNK = 1 << 18
 #: (entry position, role, assembler input, stamp, values) of one decoded message
 Sample = tuple[int, str, str, float, tuple[float, ...]]
 
@@ -48,9 +50,13 @@ def message_samples(entries: list, conn: Any, log_ns: int, data: bytes, joint: s
     return out
 
 
-def _raw(scan: Any, reader: Any, connections: list) -> tuple[np.ndarray, np.ndarray, list[bytes]] | None:
-    """(connection id, log ns, bytes) of every message, in log-time order; None if a log time overflows int64."""
+def _chunks(scan: Any, reader: Any, connections: list) -> Iterator[tuple[int, np.ndarray, np.ndarray, list[bytes]]]:
+    """(number of the first message, connection ids, log ns, bytes) of every CHUNK messages, in log-time order.
+
+    Raises OverflowError when a log time does not fit an int64.
+    """
     ids, logs, datas = [], [], []
+    first = 0
     progress = Progress(sum(c.msgcount for c in connections), f"reading {scan.path}") if scan.progress else None
     next_report = progress.next_at if progress is not None else math.inf
     for n, (conn, log_ns, data) in enumerate(reader.messages(connections=connections), 1):
@@ -60,40 +66,24 @@ def _raw(scan: Any, reader: Any, connections: list) -> tuple[np.ndarray, np.ndar
         ids.append(conn.id)
         logs.append(log_ns)
         datas.append(data)
+        if len(ids) == CHUNK:
+            yield first, np.array(ids, dtype=np.int64), np.array(logs, dtype=np.int64), datas
+            first, ids, logs, datas = first + CHUNK, [], [], []
     if progress is not None:
         progress.done()
-    try:
-        return np.array(ids, dtype=np.int64), np.array(logs, dtype=np.int64), datas
-    except OverflowError:
-        return None
+    yield first, np.array(ids, dtype=np.int64), np.array(logs, dtype=np.int64), datas
 
 
 def read_batch(scan: Any, reader: Any, table: dict) -> list[SampleStream] | None:
     """Fill ``scan`` (counts, rejections, truth rows) and return the input samples; None: use the stream instead."""
     connections = [c for c in reader.connections if c.id in table]
     scan.connections = connections
-    raw = _raw(scan, reader, connections)
-    if raw is None:
-        return None
-    ids, logs, datas = raw
-    joint = scan.params.steering.joint_name
     columns: dict[tuple[str, str, int], list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
-    slow_messages: list[np.ndarray] = []
-    for conn in connections:
-        members = np.flatnonzero(ids == conn.id)
-        scan.read_per_connection[conn.id] += len(members)
-        entries = table[conn.id]
-        subset = [datas[i] for i in members.tolist()]
-        decoded = [decode_connection(msgtype, role, extract, joint, members, logs[members], subset,
-                                     width_of(msgtype, role))
-                   for role, _name, msgtype, extract in entries]
-        slow = np.unique(np.concatenate([d.slow for d in decoded]))
-        slow_messages.append(slow)
-        for position, ((role, name, _msgtype, _extract), d) in enumerate(zip(entries, decoded, strict=True)):
-            keep = ~np.isin(d.index, slow)
-            columns.setdefault((role, name, d.values.shape[1]), []).append(
-                (d.index[keep] * 2 + position, d.stamps[keep], d.values[keep]))
-    _slow_path(scan, table, ids, logs, datas, np.sort(np.concatenate(slow_messages)), columns, joint)
+    try:
+        for first, ids, logs, datas in _chunks(scan, reader, connections):
+            _decode_chunk(scan, table, first, ids, logs, datas, columns)
+    except OverflowError:
+        return None
     streams = []
     for (role, name, width), parts in columns.items():
         keys = np.concatenate([p[0] for p in parts])
@@ -108,18 +98,36 @@ def read_batch(scan: Any, reader: Any, table: dict) -> list[SampleStream] | None
     return streams
 
 
-def _slow_path(scan: Any, table: dict, ids: np.ndarray, logs: np.ndarray, datas: list[bytes], slow: np.ndarray,
-               columns: dict, joint: str) -> None:
-    """The messages outside every group, one by one, as the streaming pass decodes them."""
-    by_conn = {c.id: c for c in scan.connections}
-    for i in slow.tolist():
-        conn = by_conn[int(ids[i])]
+def _decode_chunk(scan: Any, table: dict, first: int, ids: np.ndarray, logs: np.ndarray, datas: list[bytes],
+                  columns: dict) -> None:
+    """Decode one chunk (messages ``first``...) into ``columns``: in groups, then the rest one by one in order."""
+    joint = scan.params.steering.joint_name
+    slow_messages: list[np.ndarray] = [np.zeros(0, dtype=np.int64)]
+    for conn in scan.connections:
+        local = np.flatnonzero(ids == conn.id)
+        if not len(local):
+            continue
+        scan.read_per_connection[conn.id] += len(local)
         entries = table[conn.id]
-        for position, role, name, stamp, values in message_samples(entries, conn, int(logs[i]), datas[i], joint,
-                                                                   scan.rejections):
+        subset = [datas[i] for i in local.tolist()]
+        decoded = [decode_connection(msgtype, role, extract, joint, local + first, logs[local], subset,
+                                     width_of(msgtype, role))
+                   for role, _name, msgtype, extract in entries]
+        slow = np.unique(np.concatenate([d.slow for d in decoded]))
+        slow_messages.append(slow)
+        for position, ((role, name, _msgtype, _extract), d) in enumerate(zip(entries, decoded, strict=True)):
+            keep = ~np.isin(d.index, slow)
+            columns.setdefault((role, name, d.values.shape[1]), []).append(
+                (d.index[keep] * 2 + position, d.stamps[keep], d.values[keep]))
+    by_conn = {c.id: c for c in scan.connections}
+    for number in np.sort(np.concatenate(slow_messages)).tolist():  # the streaming pass's decoding, in order
+        i = number - first
+        conn = by_conn[int(ids[i])]
+        for position, role, name, stamp, values in message_samples(table[conn.id], conn, int(logs[i]), datas[i],
+                                                                   joint, scan.rejections):
             row = np.array([values], dtype=np.float64).reshape(1, len(values))
             columns.setdefault((role, name, len(values)), []).append(
-                (np.array([i * 2 + position], dtype=np.int64), np.array([stamp], dtype=np.float64), row))
+                (np.array([number * 2 + position], dtype=np.int64), np.array([stamp], dtype=np.float64), row))
 
 
 def assemble_scan(new_scan: Callable[[], Any], settings: AssemblerSettings, *,
