@@ -269,6 +269,9 @@ PARAM_FILES: dict[str, tuple[bytes, str | None]] = {
     "no_section": (b"other_node:\n  ros__parameters:\n    vehicle: {mass: 700.0}\n", ""),
     "top_level_list": (b"- estimator\n", ""),
     "tuner_file_cut": (b"", "CUT"),  # written by the tuner's writer, then cut mid-number (built in the test)
+    # rcl refuses a list of ints and floats, so the node cannot start with it: replay refuses it too
+    "mixed_list": (b"estimator:\n  ros__parameters:\n    ekf: {process_noise: [1, 1.0e-4, 1.0e-6, 1.0e-6]}\n",
+                   "ekf.process_noise"),
     "all_integers": (b"estimator:\n  ros__parameters:\n    vehicle: {mass: 700}\n"
                      b"    ekf: {initial_stiffness: [8000, 9000]}\n", None),
     "extreme_but_valid": (b"estimator:\n  ros__parameters:\n    ekf: {process_noise: [1.0e6, 0.0, 0.0, 0.0], "
@@ -317,15 +320,13 @@ def test_parameter_files_through_replay(base: fuzz_bags.Base, tmp_path: Path) ->
 
 #: the files the node must refuse at start-up, each with one line naming the file (and the key)
 NODE_FILES = ("missing", "directory", "non_utf8", "alias_bomb", "list_for_map", "invalid_topic", "q_1e300",
-              "stiffness_1e300", "tuner_file_cut", "huge_int", "nan_noise", "not_yaml", "top_level_list")
+              "stiffness_1e300", "tuner_file_cut", "huge_int", "nan_noise", "not_yaml", "top_level_list", "mixed_list")
 
 
 def test_parameter_files_for_the_node(tmp_path: Path) -> None:
     """Each bad file stops the node with exit code 1 and one 'cannot start' line naming the file; no traceback."""
     files = write_param_files(tmp_path)
-    mixed = tmp_path / "mixed.yaml"  # rcl refuses a list of ints and floats: the node names it first
-    mixed.write_text("estimator:\n  ros__parameters:\n    ekf: {process_noise: [1, 1.0e-4, 1.0e-6, 1.0e-6]}\n")
-    cases = {name: files[name] for name in NODE_FILES} | {"mixed_list": (mixed, "ekf.process_noise")}
+    cases = {name: files[name] for name in NODE_FILES}
     procs = {}
     for name, (path, _key) in cases.items():
         command = isolated(estimator_command("--params-file", str(CONFIG), "--params-file", str(path)))
