@@ -329,10 +329,7 @@ def _flatten(mapping: Mapping[Any, Any], prefix: str, out: dict[str, Any], sourc
 
 
 def _check_list(value: Any, key: str, source: str) -> None:
-    """The rcl parser (and so the node) refuses a list that mixes integers and floats: so do we, naming it.
-
-    Offline too, so that a file replay accepts also starts the node (a list of integers alone is fine).
-    """
+    """The rcl parser (so the node) refuses a list mixing integers and floats: so do we, offline too, naming it."""
     if not isinstance(value, list):
         return
     kinds = {type(v) for v in value}
