@@ -41,7 +41,8 @@ from transplanter_ident.bags.messages import (
     seconds,
 )
 from transplanter_ident.epochs import checks
-from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
+from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler
+from transplanter_ident.epochs.counted import assemble_counting
 from transplanter_ident.epochs.epoch import EpochArrays, Rejection
 from transplanter_ident.evaluation.windows import reason_class
 from transplanter_ident.files import Progress, one_line
@@ -73,6 +74,7 @@ class BagData:
     truth: Truth | None
     counts: dict[str, int]  # decoded messages per role (velocity, heading, steering, truth)
     notes: list[str] = field(default_factory=list)  # non-fatal remarks (ignored truth topics, ...)
+    rejected: tuple[int, ...] = ()  # per epoch, the rejections since the previous one (validity.Sample.rejected)
 
 
 def _resolve(path: str | Path) -> Path:
@@ -300,14 +302,14 @@ def read_bag(path: str | Path, params: Any, *, truth: bool = True, progress: boo
     """
     scan = _Scan(path, params, truth=truth, progress=progress)
     assembler = EpochAssembler(AssemblerSettings.from_params(params))
-    epochs = assemble(assembler, scan.samples())
+    epochs, rejected, drained = assemble_counting(assembler, scan.samples(), scan.rejections)
     missing = scan.shortfall()
     if missing and not allow_partial:
         raise BagError(f"{path}: messages read differ from the bag's own counts ({'; '.join(missing)}): a corrupt "
                        "or truncated chunk was skipped (use --allow-partial to go on with what could be read)")
     if missing:
         scan.notes.append(f"partial bag: messages read of the bag's own counts: {'; '.join(missing)}")
-    rejections = scan.rejections + assembler.drain_rejections()
+    rejections = scan.rejections + drained + assembler.drain_rejections()
     rejections.sort(key=lambda r: r.stamp)
     counts = {role: scan.counts.get(role, 0) for role in ROLES}
     if not epochs:
@@ -320,7 +322,7 @@ def read_bag(path: str | Path, params: Any, *, truth: bool = True, progress: boo
     if truth:
         counts["truth"] = scan.counts.get("truth_stiffness", 0)
     notes = scan.notes + _input_notes(assembler, rejections)
-    return BagData(Path(path), EpochArrays(epochs), rejections, truth_data, counts, notes)
+    return BagData(Path(path), EpochArrays(epochs), rejections, truth_data, counts, notes, tuple(rejected))
 
 
 def _input_notes(assembler: EpochAssembler, rejections: Sequence[Rejection]) -> list[str]:
