@@ -118,6 +118,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--no-epoch-cache", action="store_true", help="decode every bag, keep nothing")
     parser.add_argument("--allow-partial", action="store_true",
                         help="go on when fewer messages can be read than the bag's metadata counts (a corrupt chunk)")
+    parser.add_argument("--tune-stiffness-noise", action="store_true",
+                        help="also tune the stiffness random walk (q_Cf, q_Cr of ekf.process_noise); by default "
+                             "only the physical noises (vy, r, psi and R) are tuned and the stiffness and offset "
+                             "random walks and the change mechanism keep their designed values")
     parser.add_argument("--no-leave-one-out", action="store_true",
                         help="with several bags, skip the leave-one-bag-out check (2 tuning runs per bag)")
     parser.add_argument("--debug", action="store_true", help="print tracebacks on errors")
@@ -231,7 +235,7 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
     epochs = [item.epochs for item in decoded]
     truths = [item.truth for item in decoded]
     config = params.config
-    problem = MultiBagProblem.from_epochs(config, epochs, args.objective, remote)
+    problem = MultiBagProblem.from_epochs(config, epochs, args.objective, remote, args.tune_stiffness_noise)
     where = f"Dask cluster {args.dask}" if args.dask else f"{local.slots} job{'s' if local.slots > 1 else ''}"
     source = args.bags[0] if len(args.bags) == 1 else f"{len(args.bags)} bags"
     print(f"tuner: {sum(map(len, epochs))} epochs from {source}; {args.algorithm} on {args.objective}, "
