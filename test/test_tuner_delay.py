@@ -3,7 +3,7 @@
 Acceptance (issue #13): on simulated drives whose GNSS is 0, 40, 80 and 120 ms late, the
 estimated ``gnss.delay`` is within 10 ms. Measured here on the project's identification drive
 (``sine``, 2 m/s, +-15 deg, 5 Hz GNSS, 120 s) with two seeds per delay, each drive its own seed;
-``bench/delay_bench.py`` runs ten seeds per delay on ``sine`` and ``multisine``.
+``bench/delay_figures.py`` runs ten seeds per delay on ``sine`` and ``multisine``.
 """
 
 from __future__ import annotations
