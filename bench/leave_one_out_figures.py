@@ -23,7 +23,7 @@ import tempfile
 from dataclasses import replace
 from pathlib import Path
 
-from bench_util import ROOT, child_env, command, default_cache  # bench/ is on sys.path
+from bench_util import child_env, command, default_cache  # bench/ is on sys.path
 
 SCENARIOS = ("sine", "step20-ccw", "step30-cw", "surface-change", "multisine", "stiffness-drop", "wet-saturating")
 
@@ -39,6 +39,7 @@ def make_bags(root: Path, seed: int, noise_factor: float) -> list[Path]:
     for scenario in SCENARIOS:
         path = folder / scenario
         if not (path / "metadata.yaml").exists():
+            folder.mkdir(parents=True, exist_ok=True)
             base = SensorNoise()
             noise = replace(base, velocity=base.velocity * noise_factor, heading=base.heading * noise_factor)
             write_sim_bag(simulate(replace(build_config(scenario, seed=seed), noise=noise)), path)
@@ -57,9 +58,9 @@ def main(argv: list[str] | None = None) -> int:
     bags = make_bags(default_cache(), args.seed, args.noise_factor)
     with tempfile.TemporaryDirectory() as tmp:
         extra = ["--tune-stiffness-noise"] if args.tune_stiffness_noise else []
-        result = subprocess.run([*command("tuner"), *map(str, bags), "-o", str(Path(tmp) / "tuned.yaml"), "--seed",
-                                 "7", "--no-epoch-cache", *extra], capture_output=True, text=True, env=child_env(),
-                                cwd=ROOT)
+        result = subprocess.run([*command("tuner"), *(b.name for b in bags), "-o", str(Path(tmp) / "tuned.yaml"),
+                                 "--seed", "7", "--no-epoch-cache", *extra], capture_output=True, text=True,
+                                env=child_env(), cwd=bags[0].parent)
         if result.returncode != 0:
             print(result.stderr[-2000:], file=sys.stderr)
             return 1

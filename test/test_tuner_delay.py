@@ -108,3 +108,14 @@ def test_tune_stiffness_noise_searches_the_stiffness_random_walk(late_bag, tmp_p
     text = out.read_text()
     assert "q_cf=" in text.split("# tuned:")[1].splitlines()[0] and "kept by design" not in text
     assert "gnss" not in load_params([str(out)]).extra and "delay:" not in text
+
+
+def test_delay_search_gives_the_same_yaml_for_any_jobs(late_bag, tmp_path, capsys) -> None:  # noqa: ANN001
+    outputs = []
+    for jobs in (1, 2):
+        out = tmp_path / f"jobs{jobs}.yaml"
+        assert tuner.main([str(late_bag), "-o", str(out), "--estimate-delay", "--particles", "4", "--iterations", "1",
+                           "--seed", "5", "--jobs", str(jobs), "--no-epoch-cache"]) == 0
+        outputs.append(out.read_bytes())
+    capsys.readouterr()
+    assert outputs[0] == outputs[1]
