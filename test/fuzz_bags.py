@@ -66,12 +66,13 @@ class Mutant:
     params: dict[str, Any] = field(default_factory=dict)  # extra parameters (ekf, gnss) for replay
 
 
-def make_base(directory: Path, seed: int = 1) -> Base:
+def make_base(directory: Path, seed: int = 1, duration: float = 20.0) -> Base:
     """A 20 s sine drive at 2 m/s: GNSS 5 Hz, steering 20 Hz, with the ground truth (about 800 messages)."""
     from transplanter_ident.bags import write_sim_bag
 
     path = directory / "base"
-    write_sim_bag(simulate(build_config("sine", duration=20.0, gnss_rate=5.0, steering_rate=20.0, seed=seed)), path)
+    write_sim_bag(simulate(build_config("sine", duration=duration, gnss_rate=5.0, steering_rate=20.0, seed=seed)),
+                  path)
     messages = []
     with open_reader(path) as reader:
         for conn, log_ns, data in reader.messages():

@@ -29,10 +29,11 @@ from transplanter_ident.bags.reader import _Scan
 from transplanter_ident.cli import simulate
 from transplanter_ident.config.params_file import EstimatorParams, load_params
 from transplanter_ident.config.params_writer import write_params_yaml
-from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
-from transplanter_ident.epochs.batch import ROW_FIELDS, SampleStream, _interval_line, assemble_batch
+from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler
+from transplanter_ident.epochs.batch import ROW_FIELDS, SampleStream, assemble_batch
+from transplanter_ident.epochs.counted import assemble_counting
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays, Rejection
-from transplanter_ident.epochs.steering_line import interval_line
+from transplanter_ident.epochs.steering_line import interval_line, interval_line_kernel
 from transplanter_ident.sim.scenarios import build_config
 from transplanter_ident.sim.simulator import simulate as run_simulation
 
@@ -77,7 +78,8 @@ def _read(path: Path, params: EstimatorParams, batch: bool) -> tuple:
         return ("error", str(exc))
     truth = None if data.truth is None else [getattr(data.truth, f.name).tobytes()
                                              for f in dataclasses.fields(data.truth)]
-    return (_epochs(data.epochs), _rejections(data.rejections), data.counts, data.notes, truth)
+    return (_epochs(data.epochs), _rejections(data.rejections), data.counts, data.notes, truth,
+            [int(n) for n in data.rejected])
 
 
 def fast_path_applies(path: Path, params: EstimatorParams) -> bool:
@@ -230,7 +232,8 @@ def test_perturbed_sample_streams() -> None:
         settings = AssemblerSettings(max_speed=5.0, max_lateral_speed=rng.choice((1.0, 0.1)), max_yaw_rate=1.5,
                                      gnss_delay=rng.choice((0.0, 0.0, 0.04)), antenna_x=rng.choice((0.0, 0.5)))
         streaming = EpochAssembler(settings)
-        epochs = EpochArrays(assemble(streaming, samples))
+        listed, counts, drained = assemble_counting(streaming, samples, [])
+        epochs = EpochArrays(listed)
         result = assemble_batch(settings, _streams(samples))
         if case % 4 == 0:
             assert result is not None, f"case {case}: a clean stream must take the fast path"
@@ -238,7 +241,8 @@ def test_perturbed_sample_streams() -> None:
             continue
         fast += 1
         assert _epochs(result.epochs) == _epochs(epochs), f"case {case}"
-        assert _rejections(result.drain_rejections()) == _rejections(streaming.drain_rejections()), f"case {case}"
+        assert _rejections(result.drain_rejections()) == _rejections(drained), f"case {case}"
+        assert result.rejected == counts, f"case {case}"
         assert result.uncovered_epochs == streaming.uncovered_epochs
         assert dataclasses.asdict(result.pairing) == dataclasses.asdict(streaming.pairing)
     assert fast >= 60
@@ -257,7 +261,7 @@ def test_interval_line_kernel_is_bit_identical() -> None:
         start = float(times[0] + rng.uniform(-0.3, 0.5))
         end = start + float(rng.uniform(1e-3, 1.0))
         expected = interval_line(times.tolist(), values.tolist(), start, end)
-        got = _interval_line(times, values, start, end)
+        got = interval_line_kernel(times, values, start, end)
         assert _bits(got[0]) == _bits(expected[0]) and _bits(got[1]) == _bits(expected[1])
 
 

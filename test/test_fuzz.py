@@ -10,7 +10,10 @@
   test_fuzz_node.py.
 
 Outcomes asserted: 0 tracebacks (and no "internal error"), 0 hangs, 0 NaN in the outputs, 0 partial
-files (a failed run leaves neither CSV, nor output bag, nor temporary file), every failure one line.
+files (a failed run leaves neither CSV, nor output bag, nor temporary file), every failure one line;
+and no silent error: no successful run's final estimate is off the truth by more than
+SILENT_ERROR (10 %, the larger of Cf and Cr) unless its final CSV row has valid 0 (or no row is
+valid) or replay reported rejected samples (or a partial bag).
 Seeds are fixed: a failure names its case and can be rerun alone.
 """
 
@@ -41,6 +44,7 @@ SEED = 14
 MESSAGE_CASES = 200
 BYTE_CASES = 100
 CASE_TIMEOUT = 120.0  # s per replay (a first one compiles the filter); beyond it, a hang
+SILENT_ERROR = 0.10  # issue #14: a final estimate off by more than this must be invalid, or its input reported
 CONFIG = ROOT / "config" / "estimator.yaml"
 
 
@@ -140,6 +144,26 @@ def reported_suspect(outcome: Outcome) -> bool:
     return "Rejected samples: none" not in outcome.stdout or "Note: partial" in outcome.stdout
 
 
+def final_valid(outcome: Outcome) -> bool:
+    """Whether the last row of a successful run's CSV has valid 1."""
+    with (outcome.out_dir / "out.csv").open() as handle:
+        rows = list(csv.DictReader(handle))
+    return bool(rows) and rows[-1]["valid"] == "1"
+
+
+def silent_error(outcome: Outcome) -> str | None:
+    """What is wrong with one run under issue #14's acceptance (None: nothing).
+
+    A final estimate off by more than SILENT_ERROR must be marked invalid, or its input reported rejected.
+    """
+    if outcome.code != 0:
+        return None
+    error = estimate_error(outcome)
+    if error is None or error <= SILENT_ERROR or not final_valid(outcome) or reported_suspect(outcome):
+        return None
+    return f"silent error: final estimate {100 * error:.1f} % off, valid, and no input reported rejected"
+
+
 @pytest.fixture(scope="module")
 def base(tmp_path_factory: pytest.TempPathFactory) -> fuzz_bags.Base:
     return fuzz_bags.make_base(tmp_path_factory.mktemp("fuzz_base"))
@@ -186,6 +210,13 @@ def test_mutated_bags_through_replay(base: fuzz_bags.Base, tmp_path: Path, kind:
     _report(results, f"{kind}-level mutants")
     bad = [f"{o.case}: {'; '.join(p)}" for o, p in results if p]
     assert not bad, "\n".join(bad)
+    off = [o for o, _ in results if o.code == 0 and (estimate_error(o) or 0.0) > SILENT_ERROR]
+    silent = [f"{o.case}: {why}" for o in off if (why := silent_error(o))]
+    print(f"{len(off)} of {sum(o.code == 0 for o, _ in results)} successful runs end more than "
+          f"{100 * SILENT_ERROR:g} % off: {sum(not final_valid(o) for o in off)} marked invalid, "
+          f"{sum(final_valid(o) and reported_suspect(o) for o in off)} valid with rejected input reported, "
+          f"{len(silent)} silent")
+    assert not silent, "\n".join(silent)
 
 
 def test_a_clean_copy_is_accurate_and_reports_nothing(base: fuzz_bags.Base, tmp_path: Path) -> None:
@@ -238,6 +269,9 @@ PARAM_FILES: dict[str, tuple[bytes, str | None]] = {
     "no_section": (b"other_node:\n  ros__parameters:\n    vehicle: {mass: 700.0}\n", ""),
     "top_level_list": (b"- estimator\n", ""),
     "tuner_file_cut": (b"", "CUT"),  # written by the tuner's writer, then cut mid-number (built in the test)
+    # rcl refuses a list of ints and floats, so the node cannot start with it: replay refuses it too
+    "mixed_list": (b"estimator:\n  ros__parameters:\n    ekf: {process_noise: [1, 1.0e-4, 1.0e-6, 1.0e-6]}\n",
+                   "ekf.process_noise"),
     "all_integers": (b"estimator:\n  ros__parameters:\n    vehicle: {mass: 700}\n"
                      b"    ekf: {initial_stiffness: [8000, 9000]}\n", None),
     "extreme_but_valid": (b"estimator:\n  ros__parameters:\n    ekf: {process_noise: [1.0e6, 0.0, 0.0, 0.0], "
@@ -286,15 +320,13 @@ def test_parameter_files_through_replay(base: fuzz_bags.Base, tmp_path: Path) ->
 
 #: the files the node must refuse at start-up, each with one line naming the file (and the key)
 NODE_FILES = ("missing", "directory", "non_utf8", "alias_bomb", "list_for_map", "invalid_topic", "q_1e300",
-              "stiffness_1e300", "tuner_file_cut", "huge_int", "nan_noise", "not_yaml", "top_level_list")
+              "stiffness_1e300", "tuner_file_cut", "huge_int", "nan_noise", "not_yaml", "top_level_list", "mixed_list")
 
 
 def test_parameter_files_for_the_node(tmp_path: Path) -> None:
     """Each bad file stops the node with exit code 1 and one 'cannot start' line naming the file; no traceback."""
     files = write_param_files(tmp_path)
-    mixed = tmp_path / "mixed.yaml"  # rcl refuses a list of ints and floats: the node names it first
-    mixed.write_text("estimator:\n  ros__parameters:\n    ekf: {process_noise: [1, 1.0e-4, 1.0e-6, 1.0e-6]}\n")
-    cases = {name: files[name] for name in NODE_FILES} | {"mixed_list": (mixed, "ekf.process_noise")}
+    cases = {name: files[name] for name in NODE_FILES}
     procs = {}
     for name, (path, _key) in cases.items():
         command = isolated(estimator_command("--params-file", str(CONFIG), "--params-file", str(path)))

@@ -110,7 +110,8 @@ def test_thresholds_are_validated() -> None:
 def test_should_publish_only_after_a_state_change() -> None:
     published = {s for s in StepStatus if should_publish(s)}
     assert published == {StepStatus.UPDATED, StepStatus.GATED, StepStatus.LOW_SPEED, StepStatus.REVERSING,
-                         StepStatus.INITIALISED, StepStatus.GAP, StepStatus.NONLINEAR, StepStatus.REINITIALISED}
+                         StepStatus.INITIALISED, StepStatus.GAP, StepStatus.NONLINEAR, StepStatus.REINITIALISED,
+                         StepStatus.RESTARTED}
 
 
 def test_throttle_counts_suppressed_lines() -> None:
@@ -183,6 +184,10 @@ def test_gating_warns_and_divergence_is_an_error() -> None:
     assert report.level == WARN and "gated" in report.message and report.value("gated_epochs") == "1"
     monitor.on_estimate(epoch(100.2), estimate(100.2, StepStatus.DIVERGED), 100.2)
     assert by_name(monitor.report(100.25), "measurements").level == ERROR
+    monitor.on_estimate(epoch(100.3), estimate(100.3, StepStatus.RESTARTED), 100.3)
+    report = by_name(monitor.report(100.35), "measurements")
+    assert report.level == ERROR and "re-initialised itself 1 time" in report.message
+    assert report.value("restarted_epochs") == "1"
 
 
 def test_convergence_threshold() -> None:

@@ -22,6 +22,7 @@ from transplanter_ident.tuning.problem import (
     candidate_matrices,
     noise_to_vector,
     search_box,
+    searched_names,
     vector_to_noise,
 )
 from transplanter_ident.tuning.pso import (
@@ -266,6 +267,39 @@ def test_candidate_matrices_follow_the_filter_layout(measurement: str) -> None:
     np.testing.assert_allclose(rs[0], arrays.measurement_noise)
     if measurement == "heading":
         assert qs.shape == (1, HEADING_STATES) and qs[0, X_PSI] == 5.0e-9
+
+
+@pytest.mark.parametrize("measurement", ["heading", "yaw_rate"])
+def test_split_q_searches_the_physical_noises_by_default(measurement: str) -> None:
+    """Issue #13 split Q: vy, r, psi and R by default; the stiffness random walk only when asked."""
+    options = FilterOptions(measurement=measurement)
+    heading = ("q_psi",) if measurement == "heading" else ()
+    assert searched_names(options) == ("q_vy", "q_r", *heading, "r_vy", "r_2")
+    assert searched_names(options, tune_stiffness_noise=True) == ("q_vy", "q_r", *heading, "q_cf", "q_cr",
+                                                                   "r_vy", "r_2")
+    assert searched_names(FilterOptions(measurement="yaw_rate"), tune_stiffness_noise=True) == NAMES
+    box = search_box(options, searched_names(options))
+    assert np.all(noise_to_vector(NoiseParams(), box.names) >= box.low)
+    assert np.all(noise_to_vector(NoiseParams(), box.names) <= box.high)
+
+
+def test_split_q_keeps_the_stiffness_and_offset_noise_as_configured(sine_epochs) -> None:  # noqa: ANN001
+    config = EstimatorConfig(noise=NoiseParams(heading_process_noise=2.0e-9, steering_offset_process_noise=3.0e-9))
+    problem = TuningProblem.from_epochs(config, sine_epochs, "nll")
+    assert problem.names == ("q_vy", "q_r", "q_psi", "r_vy", "r_2") and problem.box.dimension == 5
+    position = np.array([-5.0, -4.0, -9.0, -3.0, -5.5])
+    tuned = problem.tuned_config(position).noise
+    np.testing.assert_allclose([*tuned.process_noise[:2], tuned.heading_process_noise, *tuned.measurement_noise],
+                               10.0**position)
+    assert tuned.process_noise[2:] == config.noise.process_noise[2:]
+    assert tuned.steering_offset_process_noise == 3.0e-9
+    qs, rs = candidate_matrices(position[None, :], config, problem.names)
+    arrays = ekf.FilterArrays.from_config(problem.tuned_config(position))
+    np.testing.assert_allclose(qs[0], arrays.process_noise)
+    np.testing.assert_allclose(rs[0], arrays.measurement_noise)
+    assert problem(position[None, :])[0] == problem.evaluate_noise(tuned)
+    full = TuningProblem.from_epochs(config, sine_epochs, "nll", tune_stiffness_noise=True)
+    assert full.box.dimension == 7 and full.names[3:5] == ("q_cf", "q_cr")
 
 
 @pytest.fixture(scope="module")

@@ -113,11 +113,24 @@ def test_wildcard_and_node_sections(tmp_path: Path) -> None:
 
 
 def test_ints_and_exponent_notation_are_read_as_floats(tmp_path: Path) -> None:
-    path = _ekf_file(tmp_path, "    ekf:\n      process_noise: [1, 1e-4, 0, 2]\n    vehicle: {mass: 700}\n")
+    path = _ekf_file(tmp_path, "    ekf:\n      process_noise: [1.0, 1e-4, 0.0, 2.0]\n"
+                     "      initial_stiffness: [8000, 9000]\n    vehicle: {mass: 700}\n")
     params = load_params([path])
     assert params.config.noise.process_noise == (1.0, 1.0e-4, 0.0, 2.0)
-    assert all(type(v) is float for v in params.config.noise.process_noise)
+    assert params.config.noise.initial_stiffness == (8000.0, 9000.0)
+    assert all(type(v) is float for v in (*params.config.noise.process_noise, *params.config.noise.initial_stiffness))
     assert type(params.config.vehicle.mass) is float
+
+
+@pytest.mark.parametrize("values", ["[1, 1e-4, 0, 2]", "[1.0e-4, 1.0e-4, 1.0e-6, 0]"])
+def test_a_list_mixing_ints_and_floats_is_refused_as_the_node_refuses_it(tmp_path: Path, values: str) -> None:
+    """The rcl parser refuses such a list (the node cannot start); offline refuses it too, naming file and key."""
+    path = _ekf_file(tmp_path, f"    ekf:\n      process_noise: {values}\n")
+    with pytest.raises(ParamsError, match="mixes integers and floats") as info:
+        load_params([path])
+    assert info.value.key == "ekf.process_noise"
+    assert str(info.value).startswith(f"{path}: ekf.process_noise mixes")
+    assert "\n" not in str(info.value)
 
 
 BAD_CASES = {

@@ -17,14 +17,22 @@ from test_validity import CONFIG, SCENARIOS, SETTINGS, epochs_of
 
 from transplanter_ident.config.parameters import ValiditySettings
 from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR_STD, O_NIS, O_STATUS, StepStatus
-from transplanter_ident.evaluation.validity import RECHECK, decide_sequence, monitor_for, sample_of
+from transplanter_ident.evaluation.validity import (
+    DISTRUSTED,
+    RECHECK,
+    decide_sequence,
+    monitor_for,
+    sample_of,
+)
 from transplanter_ident.evaluation.validity_batch import decide_batch
 from transplanter_ident.sim.simulator import SimResult, simulate
 
 
-def monitor_decisions(settings: ValiditySettings, epochs, outputs) -> np.ndarray:  # noqa: ANN001
+def monitor_decisions(settings: ValiditySettings, epochs, outputs, rejected=None) -> np.ndarray:  # noqa: ANN001
     monitor = monitor_for(CONFIG, settings)
-    return np.array([monitor.step(sample_of(epochs[i], outputs[i])).valid for i in range(len(epochs))], dtype=bool)
+    counts = [0] * len(epochs) if rejected is None else rejected
+    return np.array([monitor.step(sample_of(epochs[i], outputs[i], counts[i])).valid for i in range(len(epochs))],
+                    dtype=bool)
 
 
 def _drive(name: str, seed: int):  # noqa: ANN202
@@ -74,10 +82,16 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
             SETTINGS, window=float(rng.choice((2.0, 5.0, 10.0))), hold_on=float(rng.choice((0.2, 1.0, 3.0))),
             hold_off=float(rng.choice((0.1, 0.5, 1.0))), max_autocorrelation=float(rng.choice((0.05, 0.3))),
             max_nonlinear_fraction=float(rng.choice((0.01, 0.2))), min_steering_std=float(rng.choice((0.02, 0.2))),
-            max_sideslip=float(rng.choice((0.02, 0.35))), course_ratio=float(rng.choice((0.2, 5.0))))
-        expected = monitor_decisions(settings, epochs, outputs)
+            max_sideslip=float(rng.choice((0.02, 0.35))), course_ratio=float(rng.choice((0.2, 5.0))),
+            max_suspect_fraction=float(rng.choice((0.05, 0.5))))
+        rejected = [0] * n
+        for _ in range(int(rng.integers(0, 4))):
+            start = int(rng.integers(0, n))
+            for i in range(start, min(n, start + int(rng.integers(1, 200)))):
+                rejected[i] = int(rng.integers(0, 3))
+        expected = monitor_decisions(settings, epochs, outputs, rejected)
         got = decide_batch(settings, CONFIG.options.stiffness_bounds, CONFIG.vehicle.lr + CONFIG.vehicle.antenna_x,
-                           RECHECK, epochs, outputs)
+                           RECHECK, epochs, outputs, rejected, DISTRUSTED)
         assert got is not None and np.array_equal(got, expected), f"case {case}"
         flips += int(np.count_nonzero(np.diff(expected.astype(int))))
     assert flips > 50  # the cases switch valid on and off, not one constant answer
@@ -88,6 +102,7 @@ def test_times_that_go_back_use_the_monitor() -> None:
     t = epochs.t.copy()
     t[len(t) // 2:] -= 30.0
     epochs.t[:] = t
-    assert decide_batch(SETTINGS, CONFIG.options.stiffness_bounds, 0.4, RECHECK, epochs, outputs) is None
+    assert decide_batch(SETTINGS, CONFIG.options.stiffness_bounds, 0.4, RECHECK, epochs, outputs, [0] * len(t),
+                        DISTRUSTED) is None
     assert np.array_equal(decide_sequence(CONFIG, SETTINGS, epochs, outputs),
                           monitor_decisions(SETTINGS, epochs, outputs))

@@ -18,8 +18,9 @@ import numpy as np
 from transplanter_ident.bags.batch_decode import decode_connection, width_of
 from transplanter_ident.bags.messages import _DECODE_ERRORS, TYPESTORE, _Unusable, seconds
 from transplanter_ident.epochs import checks
-from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
+from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler
 from transplanter_ident.epochs.batch import BatchResult, SampleStream, assemble_batch, stream_samples
+from transplanter_ident.epochs.counted import assemble_counting
 from transplanter_ident.epochs.epoch import EpochArrays, Rejection
 from transplanter_ident.files import Progress
 
@@ -30,24 +31,25 @@ Sample = tuple[int, str, str, float, tuple[float, ...]]
 
 
 def message_samples(entries: list, conn: Any, log_ns: int, data: bytes, joint: str,
-                    rejections: list[Rejection]) -> list[Sample]:
-    """Decode one message for each of its connection's entries; append what cannot be used to ``rejections``."""
+                    rejections: list[Rejection]) -> Iterator[Sample]:
+    """Decode one message for each of its connection's entries, yielding each sample as it is made.
+
+    What cannot be used is appended to ``rejections`` when it is met (before the samples of later entries).
+    """
     try:
         msg = TYPESTORE.deserialize_cdr(data, entries[0][2])
     except _DECODE_ERRORS:
         reason = f"undecodable {conn.msgtype} message"
         for role, *_ in entries:
             rejections.append(Rejection(role.removeprefix("truth_"), seconds(log_ns), reason, checks.UNDECODABLE))
-        return []
-    out = []
+        return
     for position, (role, name, _msgtype, extract) in enumerate(entries):
         try:
             stamp, values = extract(msg, log_ns, joint)
         except _Unusable as exc:
             rejections.append(Rejection(role.removeprefix("truth_"), seconds(log_ns), str(exc), exc.kind))
             continue
-        out.append((position, role, name, stamp, values))
-    return out
+        yield position, role, name, stamp, values
 
 
 def _chunks(scan: Any, reader: Any, connections: list) -> Iterator[tuple[int, np.ndarray, np.ndarray, list[bytes]]]:
@@ -78,6 +80,7 @@ def read_batch(scan: Any, reader: Any, table: dict) -> list[SampleStream] | None
     """Fill ``scan`` (counts, rejections, truth rows) and return the input samples; None: use the stream instead."""
     connections = [c for c in reader.connections if c.id in table]
     scan.connections = connections
+    scan.release_keys = []  # per scan rejection: the key of the first sample the streaming pass reads after it
     columns: dict[tuple[str, str, int], list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
     try:
         for first, ids, logs, datas in _chunks(scan, reader, connections):
@@ -123,30 +126,53 @@ def _decode_chunk(scan: Any, table: dict, first: int, ids: np.ndarray, logs: np.
     for number in np.sort(np.concatenate(slow_messages)).tolist():  # the streaming pass's decoding, in order
         i = number - first
         conn = by_conn[int(ids[i])]
+        made = len(scan.rejections)
         for position, role, name, stamp, values in message_samples(table[conn.id], conn, int(logs[i]), datas[i],
                                                                    joint, scan.rejections):
+            _release(scan, made, number * 2 + position)
+            made = len(scan.rejections)
             row = np.array([values], dtype=np.float64).reshape(1, len(values))
             columns.setdefault((role, name, len(values)), []).append(
                 (np.array([number * 2 + position], dtype=np.int64), np.array([stamp], dtype=np.float64), row))
+        _release(scan, made, number * 2 + 2)
+
+
+def _release(scan: Any, made: int, key: int) -> None:
+    """The rejections appended since ``made`` reach the streaming pass before the sample keyed ``key``."""
+    scan.release_keys.extend([key] * (len(scan.rejections) - made))
 
 
 def assemble_scan(new_scan: Callable[[], Any], settings: AssemblerSettings, *,
-                  batch: bool) -> tuple[EpochAssembler | BatchResult, EpochArrays, Any]:
-    """(assembler or its batch result, epochs, the scan that read them) of one bag.
+                  batch: bool) -> tuple[EpochAssembler | BatchResult, EpochArrays, list[int], list[Rejection], Any]:
+    """(assembler or batch result, epochs, rejections per epoch, the assembler's rejections, the scan) of a bag.
 
+    The rejections per epoch are those since the previous epoch, as epochs.counted.assemble_counting counts them.
     In batches where :func:`~transplanter_ident.epochs.batch.assemble_batch` applies; otherwise the
     same samples go through the streaming assembler (read again message by message when the batch
     pass could not hold them).
     """
     scan = new_scan()
     streams = scan.batch() if batch else None
-    result = assemble_batch(settings, streams) if streams is not None else None
+    result = assemble_batch(settings, streams, scan.release_keys) if streams is not None else None
     if result is not None:
-        return result, result.epochs, scan
+        return result, result.epochs, result.rejected, result.drain_rejections(), scan
     assembler = EpochAssembler(settings)
     if streams is None:
         scan = new_scan() if batch else scan
-        samples = scan.samples()
+        epochs, rejected, drained = assemble_counting(assembler, scan.samples(), scan.rejections)
     else:
-        samples = stream_samples(streams)
-    return assembler, EpochArrays(assemble(assembler, samples)), scan
+        source: list[Rejection] = []
+        samples = _released(stream_samples(streams, keys=True), scan.release_keys, scan.rejections, source)
+        epochs, rejected, drained = assemble_counting(assembler, samples, source)
+    return assembler, EpochArrays(epochs), rejected, drained, scan
+
+
+def _released(samples: list, release_keys: list[int], rejections: list[Rejection],
+              source: list[Rejection]) -> Iterator[tuple[str, float, tuple[float, ...]]]:
+    """The samples, appending each scan rejection to ``source`` when the streaming pass would have made it."""
+    j = 0
+    for key, name, stamp, values in samples:
+        while j < len(release_keys) and release_keys[j] <= key:
+            source.append(rejections[j])
+            j += 1
+        yield name, stamp, values

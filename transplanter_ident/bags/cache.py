@@ -167,3 +167,19 @@ def load_bag_epochs(bag: str, params: EstimatorParams, cache_dir: str | Path | N
     data = read_bag(bag, params, truth=True, allow_partial=allow_partial)
     columns = _columns(data.epochs)
     return DecodedBag(bag, columns, data.truth, "bag", _write(path, key, columns, data.truth))
+
+
+def store_bag_epochs(bag: str, params: EstimatorParams, epochs: EpochArrays, truth: Truth | None,
+                     cache_dir: str | Path | None = None) -> DecodedBag:
+    """A :class:`DecodedBag` of epochs assembled elsewhere (``tuner --estimate-delay``), cached under ``params``.
+
+    So a later run with the same parameters (the estimated ``gnss.delay`` among them) skips decoding.
+    """
+    columns = _columns(epochs)
+    if cache_dir is None:
+        return DecodedBag(bag, columns, truth, "bag")
+    try:
+        key = cache_key(bag, params)
+    except OSError as exc:
+        return DecodedBag(bag, columns, truth, "bag", f"epoch cache not written ({one_line(exc)})")
+    return DecodedBag(bag, columns, truth, "bag", _write(cache_path(bag, key, Path(cache_dir)), key, columns, truth))

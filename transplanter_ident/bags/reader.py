@@ -74,6 +74,7 @@ class BagData:
     truth: Truth | None
     counts: dict[str, int]  # decoded messages per role (velocity, heading, steering, truth)
     notes: list[str] = field(default_factory=list)  # non-fatal remarks (ignored truth topics, ...)
+    rejected: tuple[int, ...] = ()  # per epoch, the rejections since the previous one (validity.Sample.rejected)
 
 
 def _resolve(path: str | Path) -> Path:
@@ -195,6 +196,7 @@ class _Scan:
         self.want_truth = truth
         self.progress = progress
         self.rejections: list[Rejection] = []
+        self.release_keys: list[int] = []  # batch pass: the arrival key each rejection precedes (batch_read)
         self.notes: list[str] = []
         self.counts: Counter[str] = Counter()
         self.read_per_connection: Counter[int] = Counter()  # every message read, usable or not
@@ -306,14 +308,15 @@ def read_bag(path: str | Path, params: Any, *, truth: bool = True, progress: boo
     def new_scan() -> _Scan:
         return _Scan(path, params, truth=truth, progress=progress)
 
-    assembler, epochs, scan = assemble_scan(new_scan, AssemblerSettings.from_params(params), batch=batch)
+    assembler, epochs, rejected, drained, scan = assemble_scan(new_scan, AssemblerSettings.from_params(params),
+                                                               batch=batch)
     missing = scan.shortfall()
     if missing and not allow_partial:
         raise BagError(f"{path}: messages read differ from the bag's own counts ({'; '.join(missing)}): a corrupt "
                        "or truncated chunk was skipped (use --allow-partial to go on with what could be read)")
     if missing:
         scan.notes.append(f"partial bag: messages read of the bag's own counts: {'; '.join(missing)}")
-    rejections = scan.rejections + assembler.drain_rejections()
+    rejections = scan.rejections + drained + assembler.drain_rejections()
     rejections.sort(key=lambda r: r.stamp)
     counts = {role: scan.counts.get(role, 0) for role in ROLES}
     if not len(epochs):
@@ -326,7 +329,7 @@ def read_bag(path: str | Path, params: Any, *, truth: bool = True, progress: boo
     if truth:
         counts["truth"] = scan.counts.get("truth_stiffness", 0)
     notes = scan.notes + _input_notes(assembler, rejections)
-    return BagData(Path(path), epochs, rejections, truth_data, counts, notes)
+    return BagData(Path(path), epochs, rejections, truth_data, counts, notes, tuple(rejected))
 
 
 def _input_notes(assembler: EpochAssembler | BatchResult, rejections: Sequence[Rejection]) -> list[str]:

@@ -134,7 +134,7 @@ def _run(args: argparse.Namespace) -> int:
     data = read_bag(args.bag, params, truth=True, progress=not args.quiet, allow_partial=args.allow_partial)
     epochs = data.epochs
     outputs = run_sequence(params.config, epochs)
-    valid = decide_sequence(params.config, params.validity, epochs, outputs)
+    valid = decide_sequence(params.config, params.validity, epochs, outputs, data.rejected)
     write_outputs(args, epochs, outputs, valid, parameter_value(params, "output.frame_id"))
 
     counts = data.counts

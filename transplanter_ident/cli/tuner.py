@@ -2,18 +2,24 @@
 
 ``tuner BAG [BAG ...] -o OUT.yaml [--params-file P.yaml ...] [--algorithm ipso|pso|cmaes]
 [--objective mae|nll] [--particles N] [--iterations N] [--seed N] [--report DIR] [--jobs N]
-[--dask ADDRESS] [--epoch-cache DIR | --no-epoch-cache] [--no-leave-one-out] [--debug]``
+[--dask ADDRESS] [--epoch-cache DIR | --no-epoch-cache] [--estimate-delay] [--tune-stiffness-noise]
+[--no-leave-one-out] [--debug]``
 
 1. reads each bag's epochs with the layered parameters, decoding a bag only if the epoch
-   cache (:mod:`transplanter_ident.bags.cache`) does not hold it yet;
-2. searches the log10 diagonal of Q and R (eq. 22, :mod:`tuning`) with IPSO (eqs. 17-20),
+   cache (:mod:`transplanter_ident.bags.cache`) does not hold it yet; with ``--estimate-delay``,
+   decodes each bag once and first searches ``gnss.delay`` over 0-0.3 s on the same objective at
+   the starting Q/R (:mod:`transplanter_ident.cli.delay_search`), then uses the epochs at that delay;
+2. searches the log10 diagonal of Q and R (eq. 22, :mod:`tuning`): the physical noises (vy, r,
+   psi process noise and R; the stiffness and offset random walks and the change mechanism keep
+   their designed values unless ``--tune-stiffness-noise``) with IPSO (eqs. 17-20),
    standard PSO (eqs. 15-16) or CMA-ES, minimising eq. (21) (``mae``) or the innovation NLL
    (``nll``), averaged over the bags with their epoch counts as weights; the starting Q/R is
    one of the initial candidates; one progress line per iteration. The candidates run on
    ``--jobs`` processes or a Dask cluster (:mod:`transplanter_ident.tuning.parallel`): the
    result for a seed is the same either way;
 3. writes OUT.yaml atomically: ``ekf.process_noise``, ``ekf.measurement_noise`` (and the heading
-   Q they were tuned with) plus the ``ekf`` options they are valid for, under a comment header;
+   Q they were tuned with) plus the ``ekf`` options they are valid for, and ``gnss.delay`` when
+   estimated, under a comment header;
    it layers over the defaults (``--params-file config/estimator.yaml --params-file OUT.yaml``);
 4. prints the paper's Table 2 for the starting and the tuned Q/R on each bag, and the
    tuned/start ratios of the mean errors; with several bags, a leave-one-bag-out table
@@ -119,6 +125,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--no-epoch-cache", action="store_true", help="decode every bag, keep nothing")
     parser.add_argument("--allow-partial", action="store_true",
                         help="go on when fewer messages can be read than the bag's metadata counts (a corrupt chunk)")
+    parser.add_argument("--estimate-delay", action="store_true",
+                        help="first search gnss.delay (0-0.3 s) on the bags with the same objective at the starting "
+                             "Q/R, then tune Q/R at that delay; writes gnss.delay into OUT.yaml")
+    parser.add_argument("--tune-stiffness-noise", action="store_true",
+                        help="also tune the stiffness random walk (q_Cf, q_Cr of ekf.process_noise); by default "
+                             "only the physical noises (vy, r, psi and R) are tuned and the stiffness and offset "
+                             "random walks and the change mechanism keep their designed values")
     parser.add_argument("--no-leave-one-out", action="store_true",
                         help="with several bags, skip the leave-one-bag-out check (2 tuning runs per bag)")
     parser.add_argument("--debug", action="store_true", help="print tracebacks on errors")
@@ -195,6 +208,12 @@ def load_bags(bags: Sequence[str], params: EstimatorParams, backend: Backend, ca
     for i, item in zip(missing, backend.map(load_bag_epochs, [(bags[i], params, cache, allow_partial) for i in missing]),
                        strict=True):
         decoded[i] = item
+    report_decoded(decoded, cache, out)
+    return decoded
+
+
+def report_decoded(decoded: Sequence[Any], cache: Path | None, out: Any) -> None:
+    """One line per bag on ``out``; too few epochs to tune is a CliError."""
     for item in decoded:
         count = len(item.columns)
         if count < MIN_EPOCHS:
@@ -203,7 +222,6 @@ def load_bags(bags: Sequence[str], params: EstimatorParams, backend: Backend, ca
             "decoded" + (f", cached in {cache}" if cache is not None and not item.note else ""))
         print(f"tuner: {item.bag}: {count} epochs ({where}){f'; note: {item.note}' if item.note else ''}",
               file=out, flush=True)
-    return decoded
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -228,11 +246,21 @@ def _run(args: argparse.Namespace) -> int:
 def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend, remote: Backend) -> int:
     if args.report:
         check_report_path(args.report)
-    decoded = load_bags(args.bags, params, local, cache_dir(args), allow_partial=args.allow_partial)
+    delay = None
+    if args.estimate_delay:  # gnss.delay first (issue #13 item 4), then Q/R on the epochs at that delay
+        from transplanter_ident.cli.delay_search import estimate_bag_delay
+
+        found = estimate_bag_delay(args.bags, params, local, objective=args.objective,
+                                   tune_stiffness_noise=args.tune_stiffness_noise, cache=cache_dir(args),
+                                   allow_partial=args.allow_partial)
+        delay, params, decoded = found.estimate, found.params, found.decoded
+        report_decoded(decoded, cache_dir(args), sys.stderr)
+    else:
+        decoded = load_bags(args.bags, params, local, cache_dir(args), allow_partial=args.allow_partial)
     epochs = [item.epochs for item in decoded]
     truths = [item.truth for item in decoded]
     config = params.config
-    problem = MultiBagProblem.from_epochs(config, epochs, args.objective, remote)
+    problem = MultiBagProblem.from_epochs(config, epochs, args.objective, remote, args.tune_stiffness_noise)
     where = f"Dask cluster {args.dask}" if args.dask else f"{local.slots} job{'s' if local.slots > 1 else ''}"
     source = args.bags[0] if len(args.bags) == 1 else f"{len(args.bags)} bags"
     print(f"tuner: {sum(map(len, epochs))} epochs from {source}; {args.algorithm} on {args.objective}, "
@@ -261,13 +289,19 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
             else:
                 written = write_multi_report(staged, outcome, epochs, comparisons, bags=args.bags, truths=truths,
                                              holdout=holdout)
-        write_params_yaml(args.output, tuned_parameters(outcome.tuned_config),
-                          header_comment(outcome, args.bags, [len(e) for e in epochs]))
+        flat = tuned_parameters(outcome.tuned_config)
+        header = header_comment(outcome, args.bags, [len(e) for e in epochs])
+        if delay is not None:
+            flat["gnss.delay"] = float(delay.delay)
+            header += f"\nestimated {delay.format(args.objective)}"
+        write_params_yaml(args.output, flat, header)
     print(f"{args.algorithm}: {args.objective} {outcome.start_fitness:.6g} -> {result.fitness:.6g} "
           f"({result.evaluations} evaluations, {outcome.seconds:.1f} s, seed {outcome.seed}); wrote {args.output}")
     for bag, comparison, bag_epochs in zip(args.bags, comparisons, epochs, strict=True):
         print(comparison.format(f"Table 2 on {bag}"))
         print(f"  tuned Q/R, {final_bound_line(outcome.tuned_config, bag_epochs, comparison.tuned_outputs[-1])}")
+    if delay is not None:
+        print(f"estimated {delay.format(args.objective)}")
     if holdout is not None:
         print(holdout.format())
     if args.report:

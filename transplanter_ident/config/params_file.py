@@ -314,24 +314,22 @@ def params_to_flat(p: EstimatorParams) -> dict[str, Any]:
     return flat
 
 
-def _flatten(mapping: Mapping[Any, Any], prefix: str, out: dict[str, Any], source: str, *,
-             strict_lists: bool = False) -> None:
+def _flatten(mapping: Mapping[Any, Any], prefix: str, out: dict[str, Any], source: str) -> None:
     for name, value in mapping.items():
         key = f"{prefix}{name}"
         if not isinstance(name, str):
             raise ParamsError(f"{source}: parameter name {key!r} is not a string", key)
         if isinstance(value, Mapping):
-            _flatten(value, key + ".", out, source, strict_lists=strict_lists)
+            _flatten(value, key + ".", out, source)
         elif value is None:
             raise ParamsError(f"{source}: {key} has no value", key)
         else:
-            if strict_lists:
-                _check_list(value, key, source)
+            _check_list(value, key, source)
             out[key] = value
 
 
 def _check_list(value: Any, key: str, source: str) -> None:
-    """The rcl parser (and so the node) refuses a list that mixes integers and floats: so do we, naming it."""
+    """The rcl parser (so the node) refuses a list mixing integers and floats: so do we, offline too, naming it."""
     if not isinstance(value, list):
         return
     kinds = {type(v) for v in value}
@@ -340,15 +338,15 @@ def _check_list(value: Any, key: str, source: str) -> None:
                           "parser refuses such a list: write every entry as a float (1.0, not 1)", key)
 
 
-def read_params_file(path: str | Path, node_name: str = "estimator", *, strict_lists: bool = False,
+def read_params_file(path: str | Path, node_name: str = "estimator", *,
                      require_section: bool = True) -> dict[str, Any]:
     """Read one params file: the flat parameters of ``/**`` overlaid with those of ``node_name``.
 
     Read safely (:mod:`.safe_yaml`: size, aliases, nesting); a file that says it was written by
     :mod:`.params_writer` must hold its closing line (:data:`~.safe_yaml.SEALED_LAST_LINE`), else it was cut short.
-    ``strict_lists``: refuse lists that mix integers and floats, as the rcl parser does (the node's check;
-    offline, ``[1, 1.0e-4]`` is read as floats). ``require_section`` False: a file without a section
-    for ``node_name`` gives no parameters instead of an error (the node: rcl applies none of it).
+    A list that mixes integers and floats (``[1, 1.0e-4]``) is refused, as the rcl parser refuses it.
+    ``require_section`` False: a file without a section for ``node_name`` gives no parameters instead
+    of an error (the node: rcl applies none of it).
     """
     try:
         text = read_text_file(path)
@@ -376,7 +374,7 @@ def read_params_file(path: str | Path, node_name: str = "estimator", *, strict_l
         params = body["ros__parameters"] or {}
         if not isinstance(params, Mapping):
             raise ParamsError(f"{path}: '{section}.ros__parameters' must be a mapping, got {short_repr(params)}")
-        _flatten(params, "", flat, str(path), strict_lists=strict_lists)
+        _flatten(params, "", flat, str(path))
     return flat
 
 

@@ -250,6 +250,9 @@ SCHEMA: tuple[Param, ...] = (
            0.0, 600.0, read_only=False),
     _float("validity.max_nonlinear_fraction", 0.2, "", "fraction of the window's epochs beyond the linear tire "
            "range above which the estimate is not valid", 0.001, 1.0, read_only=False),
+    _float("validity.max_suspect_fraction", 0.1, "", "fraction of the window's epochs that follow a rejected "
+           "input sample (or a dropped epoch) or that the filter gated, rejected or rolled back, above which the "
+           "input is suspect and the estimate not valid (issue #14)", 0.001, 1.0, read_only=False),
     # diagnostics (evaluation.health.HealthThresholds, plus the publishing period and the latency log)
     _float("diagnostics.stale_timeout", 1.0, "s", "time without a message before an input is reported stale "
            "(ERROR)", 0.01, 3600.0, read_only=False),

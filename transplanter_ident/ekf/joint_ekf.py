@@ -65,8 +65,11 @@ from transplanter_ident.ekf.layout import (
     S_MAX_SLIP,
     S_METHOD,
     S_MIN_SPEED,
+    S_P0_OFFSET,
     S_P0_PSI,
     S_P0_R,
+    S_P0_THETA_F,
+    S_P0_THETA_R,
     S_P0_VY,
     S_R_FROM_COVARIANCE,
     X_OFFSET,
@@ -172,6 +175,7 @@ class FilterArrays:
         settings[S_CHANGE_DETECTION] = 1.0 if options.change_detection else 0.0
         settings[S_R_FROM_COVARIANCE] = 1.0 if options.measurement_noise_from_covariance else 0.0
         q, p0 = _state_diagonals(noise, options)
+        settings[S_P0_THETA_F], settings[S_P0_THETA_R], settings[S_P0_OFFSET] = p0[-3:]  # recovery.py
         x0 = np.zeros(len(q))
         x0[X_THETA_F] = to_state(noise.initial_stiffness[0])
         x0[X_THETA_R] = to_state(noise.initial_stiffness[1])

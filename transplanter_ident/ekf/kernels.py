@@ -36,6 +36,7 @@ from transplanter_ident.ekf.layout import (
     HEADING_STATES,
     M_ADAPT_UNTIL,
     M_CUSUM,
+    M_DIVERGED,
     M_GATED,
     M_INITIALISED,
     M_T_PREV,
@@ -91,6 +92,7 @@ from transplanter_ident.ekf.layout import (
     StepStatus,
 )
 from transplanter_ident.ekf.model import discretize_heading, discretize_yaw_rate
+from transplanter_ident.ekf.recovery import make_recovery
 from transplanter_ident.ekf.sequence import make_sequence_kernels
 from transplanter_ident.ekf.update import make_update
 from transplanter_ident.epochs.frames import wrap_angle
@@ -216,8 +218,11 @@ def make_kernels(heading):
         memo[M_T_PREV] = t
         memo[M_INITIALISED] = 1.0
         memo[M_GATED] = 0.0
+        memo[M_DIVERGED] = 0.0
         write_outputs(x, p, settings, status, yaw_rate, x[X_VY], out)
         return status
+
+    recover = make_recovery(n, nd, MAX_VARIANCE, write_outputs, restart_motion)
 
     @sized_kernel(runtime=False)
     def step_n(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,
@@ -231,7 +236,7 @@ def make_kernels(heading):
         4. Innovation, S and NIS with the lever arm in h(x) and the heading error in vy; the CUSUM test.
         5. Gate; after max_gated gated epochs in a row, re-initialise the motion states.
         6. Joseph update (motion only outside the linear tire range); clamp the stiffness.
-        7. Roll back if anything became non-finite.
+        7. Roll back if anything became non-finite; re-initialise if that lasts (:mod:`.recovery`).
         """
         out[:] = 0.0
         # 1.
@@ -323,18 +328,10 @@ def make_kernels(heading):
         x[nr] = min(max(x[nr], low), high)
 
         # 7.
-        if not healthy(x, p, r_model, vy_model, nis):
-            for i in range(n):
-                x[i] = ws[W_VEC, V_BACKUP_X, i]
-                for j in range(n):
-                    p[i, j] = ws[W_BACKUP_P, i, j]
-            for i in range(N_MODEL):
-                model[i] = ws[W_VEC, V_BACKUP_MODEL, i]
-            memo[M_CUSUM] = cusum_before
-            out[:] = 0.0
-            write_outputs(x, p, settings, StepStatus.DIVERGED, model[X_R], model[X_VY], out)
-            return StepStatus.DIVERGED
+        if not healthy(x, p, r_model, vy_model, nis):  # roll back; re-initialise if it lasts (recovery.py)
+            return recover(x, p, model, memo, settings, t, vy_antenna, psi, yaw_rate, cusum_before, ws, out)
         memo[M_T_PREV] = t
+        memo[M_DIVERGED] = 0.0
         write_outputs(x, p, settings, status, r_model, vy_model, out)
         return status
 

@@ -35,7 +35,8 @@ S_GATE, S_MAX_GATED, S_MAX_INTERVAL, S_P0_VY, S_P0_R, S_P0_PSI = 6, 7, 8, 9, 10,
 S_ANTENNA_X, S_MAX_SLIP, S_MAX_LAT_ACC = 12, 13, 14
 S_CUSUM_SCALE, S_CUSUM_THRESHOLD, S_CUSUM_CAP, S_CHANGE_Q = 15, 16, 17, 18
 S_LINEAR_RANGE, S_CHANGE_DETECTION, S_CHANGE_HOLD, S_R_FROM_COVARIANCE = 19, 20, 21, 22
-N_SETTINGS = 23
+S_P0_THETA_F, S_P0_THETA_R, S_P0_OFFSET = 23, 24, 25  # the parameter states' P0 (recovery.py re-initialises to it)
+N_SETTINGS = 26
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6
@@ -45,8 +46,8 @@ O_SLIP_F, O_SLIP_R, O_LAT_ACC, O_DT = 20, 21, 22, 23
 N_OUTPUTS = 24
 
 # memo vector
-M_T_PREV, M_INITIALISED, M_GATED, M_CUSUM, M_ADAPT_UNTIL = 0, 1, 2, 3, 4
-N_MEMO = 5
+M_T_PREV, M_INITIALISED, M_GATED, M_CUSUM, M_ADAPT_UNTIL, M_DIVERGED = 0, 1, 2, 3, 4, 5
+N_MEMO = 6
 
 # the open-loop model's state [vy, r, psi]
 N_MODEL = 3
@@ -96,6 +97,7 @@ class StepStatus(enum.IntEnum):
     DIVERGED = 8  # the step produced a non-finite state: rolled back
     NONLINEAR = 9  # slip or lateral acceleration beyond the linear tire: motion updated, stiffness and offset held
     REINITIALISED = 10  # max_gated consecutive epochs failed the gate: motion states taken from the measurement
+    RESTARTED = 11  # divergence persisted (recovery.py): motion states from the measurement, a diverged P to P0
 
     @property
     def stiffness_updated(self) -> bool:

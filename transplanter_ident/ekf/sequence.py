@@ -89,8 +89,8 @@ def make_sequence_kernels(step_n, heading):  # noqa: ANN001, ANN201 - numba clos
     def objective_n(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind):
         """Tuning objective over a sequence: eq. 21 mean |innovation| (MAE) or Gaussian NLL.
 
-        Only epochs with a predicted measurement (UPDATED, GATED, NONLINEAR) count. A diverging
-        filter, or one that never predicts, scores DIVERGENCE_PENALTY.
+        Only epochs with a predicted measurement (UPDATED, GATED, NONLINEAR) count. A diverging (or
+        restarted) filter, or one that never predicts, scores DIVERGENCE_PENALTY.
         """
         ws = np.zeros((WORK_SLOTS, WORK_SIZE, WORK_SIZE))
         out = np.zeros(N_OUTPUTS)
@@ -99,7 +99,7 @@ def make_sequence_kernels(step_n, heading):  # noqa: ANN001, ANN201 - numba clos
         count = 0
         for k in range(epochs.shape[0]):
             status = step_row(epochs, k, x, p, model, memo, vehicle, settings, q, r_noise, r_epoch, ws, out)
-            if status == StepStatus.DIVERGED:
+            if status == StepStatus.DIVERGED or status == StepStatus.RESTARTED:
                 return DIVERGENCE_PENALTY
             if status != StepStatus.UPDATED and status != StepStatus.GATED and status != StepStatus.NONLINEAR:
                 continue

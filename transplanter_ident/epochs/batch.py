@@ -14,7 +14,7 @@ samples. Offline all samples are known, so this module
 2. runs the assembler's own sequential logic in a compiled kernel (:func:`_epochs_kernel`): the
    steering buffer with its time and length trimming, the pending epochs that wait until the
    steering covers them, the anchors, heading unwrapping, the physical limits with re-anchoring,
-   and :func:`~.steering_line.interval_line`, with the same floating-point operations in the same
+   and :func:`~.steering_line.interval_line` (its compiled twin), with the same floating-point operations in the same
    order (the trigonometry is done in Python's ``math``, as the assembler does).
 
 Anything else (an outlier stamp, a sample given up by the pairer, a resync, the ``heading``
@@ -42,6 +42,7 @@ from transplanter_ident.epochs.early_rejections import KINDS, early_rejections, 
 from transplanter_ident.epochs.epoch import EpochArrays, Rejection
 from transplanter_ident.epochs.frames import wrap_angle
 from transplanter_ident.epochs.pairing import PairingStats
+from transplanter_ident.epochs.steering_line import interval_line_kernel
 from transplanter_ident.jit import entry_kernel
 
 #: the value columns of a merged sample, and the widths each input comes in (fewer: the add_* defaults)
@@ -72,6 +73,7 @@ class BatchResult:
     rejections: list[Rejection]
     pairing: PairingStats
     uncovered_epochs: int
+    rejected: list[int]  # per epoch, the rejections since the previous one (epochs.counted.assemble_counting)
 
     def drain_rejections(self) -> list[Rejection]:
         """Return and clear the rejections (as :meth:`EpochAssembler.drain_rejections`)."""
@@ -79,14 +81,19 @@ class BatchResult:
         return out
 
 
-def assemble_batch(settings: AssemblerSettings, streams: Sequence[SampleStream]) -> BatchResult | None:
-    """The streaming assembler's result for these samples, or None when the fast path does not apply."""
+def assemble_batch(settings: AssemblerSettings, streams: Sequence[SampleStream],
+                   source_keys: Sequence[int] = ()) -> BatchResult | None:
+    """The streaming assembler's result for these samples, or None when the fast path does not apply.
+
+    ``source_keys``: per rejection made while the samples were read (bag decoding), the key of the first
+    sample read after it; they count in :attr:`BatchResult.rejected` as epochs.counted.assemble_counting counts.
+    """
     if any(s.name not in KINDS for s in streams):
         return None
     merged = _merge(streams)
     if merged is None:
         return None
-    kind, stamp, values = merged
+    keys, kind, stamp, values = merged
     bad = stateless_bad(settings, kind, stamp, values)
     early = early_rejections(settings, kind, stamp, values, bad)
     if early is None:
@@ -100,11 +107,12 @@ def assemble_batch(settings: AssemblerSettings, streams: Sequence[SampleStream])
     if pairs is None:
         return None
     steer = np.flatnonzero(kind == KINDS["steering"])
-    return _run(settings, pairs, steer, stamp[steer], values[steer, 0], position, early)
+    source_at = np.searchsorted(keys, np.asarray(source_keys, dtype=np.int64), side="left")
+    return _run(settings, pairs, steer, stamp[steer], values[steer, 0], position, early, source_at)
 
 
-def _merge(streams: Sequence[SampleStream]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """(kind, stamp, values n x 5) in arrival order; variances absent are 0.0, as the add_* defaults."""
+def _merge(streams: Sequence[SampleStream]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """(key, kind, stamp, values n x 5) in arrival order; variances absent are 0.0, as the add_* defaults."""
     total = sum(len(s.keys) for s in streams)
     keys = np.empty(total, dtype=np.int64)
     kind = np.empty(total, dtype=np.int64)
@@ -121,7 +129,7 @@ def _merge(streams: Sequence[SampleStream]) -> tuple[np.ndarray, np.ndarray, np.
     order = np.argsort(keys, kind="stable")
     if total > 1 and np.any(np.diff(keys[order]) == 0):
         return None
-    return kind[order], stamp[order], values[order]
+    return keys[order], kind[order], stamp[order], values[order]
 
 
 def _accepted(settings: AssemblerSettings, kind: np.ndarray, stamp: np.ndarray,
@@ -236,7 +244,8 @@ def _body(settings: AssemblerSettings, kind: np.ndarray, values: np.ndarray,
 
 
 def _run(settings: AssemblerSettings, pairs: _Pairs, steer_at: np.ndarray, steer_t: np.ndarray,
-         steer_v: np.ndarray, position: np.ndarray, early: list[tuple[int, Rejection]]) -> BatchResult:
+         steer_v: np.ndarray, position: np.ndarray, early: list[tuple[int, Rejection]],
+         source_at: np.ndarray) -> BatchResult:
     events = np.concatenate((steer_at, pairs.done))
     is_pair = np.concatenate((np.zeros(len(steer_at), np.int64), np.ones(len(pairs.done), np.int64)))
     index = np.concatenate((np.arange(len(steer_at)), np.arange(len(pairs.done))))
@@ -264,7 +273,12 @@ def _run(settings: AssemblerSettings, pairs: _Pairs, steer_at: np.ndarray, steer
         rejections.append((int(at[k]), rejection))
     rejections.sort(key=lambda item: item[0])  # stable: in the order the assembler makes them
     stats = PairingStats(pairs=len(pairs.t), tolerance=settings.match_tolerance)
-    return BatchResult(EpochArrays.from_rows(rows[code == EPOCH]), [r for _, r in rejections], stats, int(uncovered))
+    # per epoch, the rejections counted since the previous call of add_* that returned epochs (assemble_counting)
+    counted = np.sort(np.concatenate((np.array([p for p, _ in rejections], dtype=np.int64), source_at)))
+    upto = np.searchsorted(counted, at[code == EPOCH], side="right")
+    rejected = np.diff(np.concatenate(([0], upto))).tolist()
+    return BatchResult(EpochArrays.from_rows(rows[code == EPOCH]), [r for _, r in rejections], stats, int(uncovered),
+                       rejected)
 
 
 #: the Epoch fields of the kernel's rows, in order (the first fields of :class:`~.epoch.Epoch`)
@@ -334,7 +348,7 @@ def _epochs_kernel(is_pair, index, ts, vs, pt, pvx, pvy, pyaw, pvar, pyvar, limi
             if hi == lo or ts[hi - 1] < t - timeout or ts[lo] > t:
                 code[k] = 4
                 continue
-            mean, slope = _interval_line(ts[lo:hi], vs[lo:hi], start, t)
+            mean, slope = interval_line_kernel(ts[lo:hi], vs[lo:hi], start, t)
             code[k] = 1
             rows[k, 1] = vx
             rows[k, 3] = unwrapped
@@ -348,42 +362,12 @@ def _epochs_kernel(is_pair, index, ts, vs, pt, pvx, pvy, pyaw, pvar, pyvar, limi
     return uncovered
 
 
-@entry_kernel
-def _interval_line(times, values, start, end):  # noqa: ANN001, ANN201 - float64 arrays and floats
-    """:func:`~.steering_line.interval_line`, operation for operation."""
-    first = np.searchsorted(times, start, side="right")
-    last = np.searchsorted(times, end, side="left")
-    centre = 0.5 * (start + end)
-    area = 0.0
-    moment = 0.0
-    a, ya = start, _interpolate(times, values, start)
-    for i in range(first, last + 1):
-        if i < last:
-            b, yb = times[i], values[i]
-        else:
-            b, yb = end, _interpolate(times, values, end)
-        area += 0.5 * (b - a) * (ya + yb)
-        moment += (b - a) / 6.0 * ((a - centre) * ya + (a + b - 2.0 * centre) * (ya + yb) + (b - centre) * yb)
-        a, ya = b, yb
-    span = end - start
-    return area / span, moment * 12.0 / span ** 3.0
+def stream_samples(streams: Sequence[SampleStream], *, keys: bool = False) -> list[tuple]:
+    """The samples in arrival order as :func:`~.assembler.assemble` takes them (the streaming fallback).
 
-
-@entry_kernel
-def _interpolate(times, values, t):  # noqa: ANN001, ANN201
-    i = np.searchsorted(times, t, side="right")
-    if i == 0:
-        return values[0]
-    if i == len(times):
-        return values[-1]
-    t0, t1 = times[i - 1], times[i]
-    return values[i - 1] + (values[i] - values[i - 1]) * (t - t0) / (t1 - t0)
-
-
-
-def stream_samples(streams: Sequence[SampleStream]) -> list[tuple[str, float, tuple[float, ...]]]:
-    """The samples in arrival order as :func:`~.assembler.assemble` takes them (the streaming fallback)."""
+    ``keys``: (key, input, stamp, values) instead of (input, stamp, values).
+    """
     merged = [(int(k), s.name, float(t), tuple(v)) for s in streams
               for k, t, v in zip(s.keys.tolist(), s.stamps.tolist(), s.values.tolist(), strict=True)]
     merged.sort(key=lambda row: row[0])
-    return [(name, t, values) for _, name, t, values in merged]
+    return merged if keys else [(name, t, values) for _, name, t, values in merged]

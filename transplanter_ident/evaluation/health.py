@@ -33,7 +33,7 @@ INPUTS = ("velocity", "heading", "steering")
 #: statuses after which the filter state changed or was propagated (outputs are published)
 PUBLISHED_STATUSES = frozenset({StepStatus.UPDATED, StepStatus.GATED, StepStatus.LOW_SPEED, StepStatus.REVERSING,
                                 StepStatus.INITIALISED, StepStatus.GAP, StepStatus.NONLINEAR,
-                                StepStatus.REINITIALISED})
+                                StepStatus.REINITIALISED, StepStatus.RESTARTED})
 #: statuses where the model was propagated with a measurement (the excitation window counts these)
 MOVING_STATUSES = frozenset({StepStatus.UPDATED, StepStatus.GATED, StepStatus.NONLINEAR})
 
@@ -201,7 +201,7 @@ class HealthMonitor:
             self._events["gated"].add(now)
         elif status in (StepStatus.REJECTED_INVALID, StepStatus.REJECTED_STAMP):
             self._events["rejected"].add(now)
-        elif status is StepStatus.DIVERGED:
+        elif status in (StepStatus.DIVERGED, StepStatus.RESTARTED):
             self._events["diverged"].add(now)
         if not should_publish(status):
             return
@@ -320,8 +320,9 @@ class HealthMonitor:
         name = f"{self.name}: measurements"
         window = f"in the last {th.window:g} s"
         if counts["diverged"]:
+            restarts = f"; it re-initialised itself {f.statuses[StepStatus.RESTARTED]} time(s) so far"
             return HealthReport(name, ERROR, f"{counts['diverged']} filter step(s) diverged and were rolled back "
-                                f"{window}", values)
+                                f"{window}" + (restarts if f.statuses[StepStatus.RESTARTED] else ""), values)
         problems = []
         if counts["gated"]:
             problems.append(f"{counts['gated']} gated by the innovation test")

@@ -10,7 +10,11 @@ of these hold over a window of data time (the same decision online and offline):
   not autocorrelated (an unconfigured GNSS delay, a wrong lever arm or a wrong R show there);
 * plausible: the heading is not a course over ground (then vy is zero by construction while the
   vehicle turns), and the GNSS velocity agrees with the heading (an ENU/NED mix-up implies a
-  sideslip no transplanter has, or a course that turns against the heading).
+  sideslip no transplanter has, or a course that turns against the heading);
+* trusted input (issue #14): at most ``max_suspect_fraction`` of the window's epochs follow a
+  rejected input sample (:attr:`Sample.rejected`: the samples and epochs rejected since the
+  previous epoch, in the order they were processed: the same online and offline) or were gated,
+  rejected or rolled back by the filter.
 
 Hysteresis: valid only after every check held for ``hold_on`` s; invalid once any has failed
 for ``hold_off`` s (at once for the plausibility and bound checks). The window checks run every
@@ -21,6 +25,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,6 +49,9 @@ from transplanter_ident.evaluation.validity_batch import decide_batch
 RECHECK = 1.0
 #: statuses whose innovation is a proper one-step prediction error
 PREDICTED = frozenset({StepStatus.UPDATED, StepStatus.NONLINEAR, StepStatus.GATED})
+#: statuses of an epoch whose measurement the filter did not trust
+DISTRUSTED = frozenset({StepStatus.GATED, StepStatus.REINITIALISED, StepStatus.REJECTED_INVALID,
+                        StepStatus.REJECTED_STAMP, StepStatus.DIVERGED, StepStatus.RESTARTED})
 
 
 @dataclass(frozen=True)
@@ -62,6 +70,7 @@ class Sample:
     antenna_lateral_velocity: float
     nis: float
     whitened_vy: float  # e0 / sqrt(S00)
+    rejected: int = 0  # input samples (and epochs) rejected since the previous epoch
 
 
 @dataclass(frozen=True)
@@ -107,7 +116,8 @@ class ValidityMonitor:
         if sample.t - self._checked_at >= RECHECK:
             self._checked_at = sample.t
             window = list(self._window)
-            self._window_hard, self._window_soft = self._plausibility(window), self._consistency(window)
+            self._window_hard = self._plausibility(window)
+            self._window_soft = self._suspect(window) + self._consistency(window)
         hard = self._bounds(sample) + self._window_hard
         soft = self._epoch_checks(sample) + self._window_soft
         self.last = self._hysteresis(sample.t, hard, soft)
@@ -161,6 +171,14 @@ class ValidityMonitor:
         rms_r = math.sqrt(sum(w.yaw_rate ** 2 for w in window) / len(window))
         rms_vy = math.sqrt(sum(w.antenna_lateral_velocity ** 2 for w in window) / len(window))
         return rms_r > 0.05 and rms_vy < self.settings.course_ratio * abs(self.lever) * rms_r
+
+    def _suspect(self, window: list[Sample]) -> list[str]:
+        suspect = sum(1 for w in window if w.rejected or w.status in DISTRUSTED)
+        if suspect <= self.settings.max_suspect_fraction * len(window):
+            return []
+        rejected = sum(w.rejected for w in window)
+        return [f"input suspect: {suspect} of the window's {len(window)} epochs follow a rejected sample or were "
+                f"gated or rolled back ({rejected} samples rejected; see the input lines of /diagnostics)"]
 
     def _consistency(self, window: list[Sample]) -> list[str]:
         s = self.settings
@@ -220,14 +238,14 @@ def _lag1_autocorrelation(values: list[float]) -> float:
     return sum(a * b for a, b in zip(centred, centred[1:], strict=False)) / power
 
 
-def sample_of(epoch: Epoch, row: np.ndarray) -> Sample:
-    """The decision's view of one epoch and its kernel output row (layout.O_*)."""
+def sample_of(epoch: Epoch, row: np.ndarray, rejected: int = 0) -> Sample:
+    """The decision's view of one epoch, its kernel output row (layout.O_*) and the samples rejected before it."""
     s00 = row[O_S00]
     return Sample(t=epoch.t, status=StepStatus(int(row[O_STATUS])), cf=float(row[O_CF]), cr=float(row[O_CR]),
                   cf_std=float(row[O_CF_STD]), cr_std=float(row[O_CR_STD]), steering=epoch.steering,
                   yaw_rate=epoch.yaw_rate, speed=epoch.speed,
                   antenna_lateral_velocity=float(epoch.antenna_lateral_velocity), nis=float(row[O_NIS]),
-                  whitened_vy=float(row[O_E0]) / math.sqrt(s00) if s00 > 0.0 else 0.0)
+                  whitened_vy=float(row[O_E0]) / math.sqrt(s00) if s00 > 0.0 else 0.0, rejected=int(rejected))
 
 
 def monitor_for(config: EstimatorConfig, settings: ValiditySettings) -> ValidityMonitor:
@@ -236,16 +254,19 @@ def monitor_for(config: EstimatorConfig, settings: ValiditySettings) -> Validity
 
 
 def decide_sequence(config: EstimatorConfig, settings: ValiditySettings, epochs: EpochArrays,
-                    outputs: np.ndarray) -> np.ndarray:
+                    outputs: np.ndarray, rejected: Sequence[int] | None = None) -> np.ndarray:
     """The validity of every epoch of an offline run (replay), as the node decides it online.
 
+    ``rejected``: per epoch, the input samples rejected since the previous one (bags.BagData.rejected).
     Computed at once (:mod:`.validity_batch`, the same decisions) unless the times do not strictly increase.
     """
     monitor = monitor_for(config, settings)
-    valid = decide_batch(settings, monitor.bounds, monitor.lever, RECHECK, epochs, outputs)
+    counts = rejected if rejected is not None else [0] * len(epochs)
+    valid = decide_batch(settings, monitor.bounds, monitor.lever, RECHECK, epochs, outputs, counts, DISTRUSTED)
     if valid is not None:
         return valid
-    return np.array([monitor.step(sample_of(epochs[i], outputs[i])).valid for i in range(len(epochs))], dtype=bool)
+    return np.array([monitor.step(sample_of(epochs[i], outputs[i], counts[i])).valid for i in range(len(epochs))],
+                    dtype=bool)
 
 
 @dataclass(frozen=True)

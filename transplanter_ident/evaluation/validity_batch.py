@@ -12,6 +12,7 @@ would reset) return None, and the caller runs the monitor.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 
@@ -34,8 +35,13 @@ _PREDICTED = (StepStatus.UPDATED, StepStatus.NONLINEAR, StepStatus.GATED)
 
 
 def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever: float, recheck: float,
-                 epochs: EpochArrays, outputs: np.ndarray) -> np.ndarray | None:
-    """The monitor's ``valid`` for every epoch, or None when the times do not strictly increase."""
+                 epochs: EpochArrays, outputs: np.ndarray, rejected: Sequence[int],
+                 distrusted: Iterable[StepStatus]) -> np.ndarray | None:
+    """The monitor's ``valid`` for every epoch, or None when the times do not strictly increase.
+
+    ``rejected``: per epoch, the samples rejected since the previous one (Sample.rejected);
+    ``distrusted``: the statuses that make an epoch suspect (validity.DISTRUSTED).
+    """
     t = np.ascontiguousarray(epochs.t, dtype=np.float64)
     n = len(t)
     if n == 0 or not np.all(np.diff(t) > 0.0):
@@ -46,6 +52,9 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
     if not np.all(outputs[:, O_STATUS] == status) or not np.isin(status, [int(s) for s in StepStatus]).all():
         return None
     predicted = np.isin(status, [int(s) for s in _PREDICTED])
+    suspect = (np.asarray(rejected, dtype=np.int64).reshape(-1) != 0) | np.isin(status, [int(s) for s in distrusted])
+    if len(suspect) != n:
+        return None
     speed = np.ascontiguousarray(epochs.speed, dtype=np.float64)
     vy = np.ascontiguousarray(epochs.antenna_lateral_velocity, dtype=np.float64)
     r = np.ascontiguousarray(epochs.yaw_rate, dtype=np.float64)
@@ -73,19 +82,19 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
     s = settings
     limits = np.array([s.window, recheck, s.max_sideslip, 0.05 ** 2, s.course_ratio * abs(lever),
                        s.max_nonlinear_fraction, s.min_steering_std, s.min_yaw_rate_std, s.nis_quantile_sigmas,
-                       s.max_autocorrelation, s.hold_on, s.hold_off])
+                       s.max_autocorrelation, s.hold_on, s.hold_off, s.max_suspect_fraction])
     return _decide_kernel(t, status == int(StepStatus.NONLINEAR), hard, soft, np.ascontiguousarray(epochs.steering),
                           r, plaus, sideslip[plaus], rate, r_sq, vy_sq, consist, nis[consist], whitened[consist],
-                          limits)
+                          suspect, limits)
 
 
 @entry_kernel
 def _decide_kernel(t, nonlinear, epoch_hard, epoch_soft, steering, r, plaus, sideslip, rate, r_sq, vy_sq,  # noqa: ANN001, ANN201, PLR0913
-                   consist, nis, whitened, limits):
+                   consist, nis, whitened, suspect, limits):
     """ValidityMonitor.step over the sequence (times strictly increasing): the valid flag of every epoch."""
     window, recheck, max_sideslip, mixed_floor, course_factor = limits[0], limits[1], limits[2], limits[3], limits[4]
     max_nonlinear, min_steering_std, min_yaw_rate_std = limits[5], limits[6], limits[7]
-    sigmas, max_rho, hold_on, hold_off = limits[8], limits[9], limits[10], limits[11]
+    sigmas, max_rho, hold_on, hold_off, max_suspect = limits[8], limits[9], limits[10], limits[11], limits[12]
     n = len(t)
     valid_out = np.zeros(n, dtype=np.bool_)
     lo = 0
@@ -104,8 +113,9 @@ def _decide_kernel(t, nonlinear, epoch_hard, epoch_soft, steering, r, plaus, sid
             b = np.searchsorted(plaus, i, side="right")
             window_hard = _plausible_not(a, b, sideslip, rate, r, plaus, r_sq, vy_sq, max_sideslip, mixed_floor,
                                          course_factor)
-            window_soft = _inconsistent(lo, i, t, window, nonlinear, steering, r, consist, nis, whitened,
-                                        max_nonlinear, min_steering_std, min_yaw_rate_std, sigmas, max_rho)
+            window_soft = suspect[lo:i + 1].sum() > max_suspect * (i - lo + 1) or _inconsistent(
+                lo, i, t, window, nonlinear, steering, r, consist, nis, whitened, max_nonlinear, min_steering_std,
+                min_yaw_rate_std, sigmas, max_rho)
         hard = epoch_hard[i] or window_hard
         if hard or epoch_soft[i] or window_soft:
             good = False

@@ -90,6 +90,7 @@ class EstimatorNode(Node):
         self._topics = {"velocity": topics.velocity, "heading": topics.heading, "steering": topics.steering}
         self._health = HealthMonitor(self._settings.thresholds, time.monotonic(), self._topics, name=self.get_name())
         self._validity = monitor_for(params.config, params.validity)
+        self._rejected = 0  # input samples rejected since the last epoch (validity: suspect input)
         self._keeper = Keeper(default_path(str(parameter_value(params, "persistence.file")), self.get_name()),
                               float(parameter_value(params, "persistence.period")), params.config)
         self._restore_learned_state()
@@ -231,7 +232,8 @@ class EstimatorNode(Node):
         self._health.on_uncovered(self._assembler.uncovered_epochs)
         for epoch in epochs:
             estimate = self._ekf.step(epoch)
-            decision = self._validity.step(sample_of(epoch, estimate.row))
+            decision = self._validity.step(sample_of(epoch, estimate.row, self._rejected))
+            self._rejected = 0
             if decision.valid:
                 self._learned = self._ekf.learned_state(epoch.t)
             self._health.on_estimate(epoch, estimate, time.monotonic())
@@ -259,6 +261,7 @@ class EstimatorNode(Node):
 
     def _reject(self, rejection: Rejection) -> None:
         self._health.on_rejection(rejection, time.monotonic())
+        self._rejected += rejection.kind != "wrong_type"  # a sample; not the publisher check (offline has none)
         topic = self._topics.get(rejection.topic, "GNSS epoch")
         key = reason_class(rejection.reason) if rejection.kind == "other" else rejection.kind  # bounded
         self._warn((rejection.topic, key),
@@ -324,6 +327,7 @@ class EstimatorNode(Node):
     def _restart(self) -> None:
         self._ekf.reset()
         self._validity.reset()
+        self._rejected = 0
         self._assembler.reset()
         self._health.reset_filter()
 

@@ -55,7 +55,7 @@ def check_params_files(ros_args: Sequence[str], default_name: str) -> None:
     name = node_name(ros_args, default_name)
     for path in params_files(ros_args):
         try:
-            flat = read_params_file(path, name, strict_lists=True, require_section=False)
+            flat = read_params_file(path, name, require_section=False)
             flat_to_params(flat)
         except ParamsError as exc:
             message = str(exc)

@@ -49,14 +49,15 @@ class MultiBagProblem:
             raise ValueError("a multi-bag problem needs at least one bag")
         first = self.problems[0]
         for other in self.problems[1:]:
-            if other.config != first.config or other.objective != first.objective:
-                raise ValueError("every bag of a multi-bag problem must share the configuration and objective")
+            if (other.config, other.objective, other.names) != (first.config, first.objective, first.names):
+                raise ValueError("every bag of a multi-bag problem must share the configuration, objective and "
+                                 "searched entries")
 
     @classmethod
     def from_epochs(cls, config: EstimatorConfig, epochs: Sequence[EpochArrays], objective: str = "nll",
-                    backend: Backend | None = None) -> MultiBagProblem:
+                    backend: Backend | None = None, tune_stiffness_noise: bool = False) -> MultiBagProblem:
         """One TuningProblem per epoch sequence, evaluated on ``backend`` (default: here)."""
-        problems = tuple(TuningProblem.from_epochs(config, e, objective) for e in epochs)
+        problems = tuple(TuningProblem.from_epochs(config, e, objective, tune_stiffness_noise) for e in epochs)
         return cls(problems, backend if backend is not None else SerialBackend())
 
     # the search space and the configuration are those of every bag (delegated, so new dimensions follow)
@@ -69,6 +70,11 @@ class MultiBagProblem:
     def objective(self) -> str:
         """``mae`` or ``nll``."""
         return self.problems[0].objective
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The searched entries."""
+        return self.problems[0].names
 
     @property
     def box(self) -> Box:

@@ -1,14 +1,20 @@
-"""The tuning problem: the EKF's Q and R (eq. 22) as a 6-D search box, and the batched objective.
+"""The tuning problem: the EKF's Q and R (eq. 22) as a log10 search box, and the batched objective.
 
-A candidate is the 6-vector of log10 diagonal entries::
+A candidate is the vector of log10 diagonal entries named by :func:`searched_names`. By
+default only the *physical* noises are searched (issue #13, "split Q")::
 
-    [log10 q_vy, log10 q_r, log10 q_Cf, log10 q_Cr, log10 r_vy, log10 r_2]
+    [log10 q_vy, log10 q_r, (log10 q_psi,) log10 r_vy, log10 r_2]
 
-(Q of eq. 22 in the units of the filter state, R of eq. 22 with r_2 the heading variance in
-``heading`` mode or the yaw-rate variance in ``yaw_rate`` mode). In ``heading`` mode the
-filter state has a fifth entry, psi, whose Q entry (``ekf.heading_process_noise``) is not
-searched: it is kept from the configuration and inserted at index 2, as
-``ekf.FilterArrays.from_config`` does.
+the vy, r (and, in ``heading`` mode, psi) process noises and R of eq. 22, with r_2 the heading
+variance in ``heading`` mode or the yaw-rate variance in ``yaw_rate`` mode. The stiffness and
+steering-offset random walks and the change mechanism are set by design (config/schema.py):
+fitted by the NLL on bags whose stiffness is constant, the stiffness random walk goes to zero
+and the filter becomes overconfident. ``tune_stiffness_noise`` adds q_Cf and q_Cr (in the
+units of the filter state) after the process noises, as the tuner did before the split::
+
+    [log10 q_vy, log10 q_r, (log10 q_psi,) log10 q_Cf, log10 q_Cr, log10 r_vy, log10 r_2]
+
+Every entry not searched keeps the configured value (:func:`candidate_matrices`).
 
 The objective of one candidate is ``ekf.objective_kernel`` over the whole epoch sequence:
 eq. (21), the mean absolute one-step innovation (``mae``), or the Gaussian innovation
@@ -23,12 +29,15 @@ entry             units                   bounds
 ================  ======================  ==================
 q_vy              (m/s)^2 per step        1e-8 .. 1e-1
 q_r               (rad/s)^2 per step      1e-8 .. 1e-1
+q_psi             rad^2 per step          1e-12 .. 1e-3
 q_Cf, q_Cr log    (ln N/rad)^2 per step   1e-10 .. 1e-2
 q_Cf, q_Cr linear (N/rad)^2 per step      1e-2 .. 1e6
 r_vy              (m/s)^2                 1e-6 .. 1e-1
 r_2 heading       rad^2                   1e-8 .. 1e-2
 r_2 yaw_rate      (rad/s)^2               1e-6 .. 1e-1
 ================  ======================  ==================
+
+("per step" reads "per second" with ``ekf.process_noise_units: per_second``, the default.)
 """
 
 from __future__ import annotations
@@ -52,6 +61,7 @@ from transplanter_ident.ekf.layout import (
     N_MEMO,
     N_MODEL,
     NLL,
+    X_PSI,
     X_R,
     X_THETA_F,
     X_THETA_R,
@@ -63,54 +73,94 @@ from transplanter_ident.jit import parallel_entry_kernel
 from transplanter_ident.tuning.box import Box
 
 OBJECTIVES = {"mae": MAE, "nll": NLL}
+#: the six entries the tuner searched before Q was split (stiffness noise included, no heading Q)
 NAMES = ("q_vy", "q_r", "q_cf", "q_cr", "r_vy", "r_2")
+#: the stiffness random walks, searched only with ``tune_stiffness_noise``
+STIFFNESS_NAMES = ("q_cf", "q_cr")
 MOTION_Q_BOUNDS = (-8.0, -1.0)
+HEADING_Q_BOUNDS = (-12.0, -3.0)
 STIFFNESS_Q_BOUNDS = {"log": (-10.0, -2.0), "linear": (-2.0, 6.0)}
 LATERAL_VELOCITY_R_BOUNDS = (-6.0, -1.0)
 SECOND_R_BOUNDS = {"heading": (-8.0, -2.0), "yaw_rate": (-6.0, -1.0)}
+#: entry -> the filter state whose diagonal Q it is (the R entries: None)
+_STATE_OF = {"q_vy": X_VY, "q_r": X_R, "q_psi": X_PSI, "q_cf": X_THETA_F, "q_cr": X_THETA_R,
+             "r_vy": None, "r_2": None}
 
 
-def search_box(options: FilterOptions) -> Box:
-    """The log10 box of the six searched entries for this stiffness parameterisation and measurement."""
-    rows = (
-        MOTION_Q_BOUNDS,
-        MOTION_Q_BOUNDS,
-        STIFFNESS_Q_BOUNDS[options.stiffness_state],
-        STIFFNESS_Q_BOUNDS[options.stiffness_state],
-        LATERAL_VELOCITY_R_BOUNDS,
-        SECOND_R_BOUNDS[options.measurement],
-    )
-    return Box(tuple(r[0] for r in rows), tuple(r[1] for r in rows), NAMES)
+def searched_names(options: FilterOptions, tune_stiffness_noise: bool = False) -> tuple[str, ...]:
+    """The entries searched: the physical noises (q_vy, q_r, q_psi in heading mode, R), plus q_Cf, q_Cr if asked."""
+    heading = ("q_psi",) if options.measurement == "heading" else ()
+    stiffness = STIFFNESS_NAMES if tune_stiffness_noise else ()
+    return ("q_vy", "q_r", *heading, *stiffness, "r_vy", "r_2")
 
 
-def noise_to_vector(noise: NoiseParams) -> np.ndarray:
-    """The log10 6-vector of a NoiseParams (zero entries map to -inf; clip with the box)."""
-    values = np.array([*noise.process_noise, *noise.measurement_noise], dtype=np.float64)
+def _bounds(name: str, options: FilterOptions) -> tuple[float, float]:
+    if name in ("q_vy", "q_r"):
+        return MOTION_Q_BOUNDS
+    if name == "q_psi":
+        return HEADING_Q_BOUNDS
+    if name in STIFFNESS_NAMES:
+        return STIFFNESS_Q_BOUNDS[options.stiffness_state]
+    if name == "r_vy":
+        return LATERAL_VELOCITY_R_BOUNDS
+    return SECOND_R_BOUNDS[options.measurement]
+
+
+def search_box(options: FilterOptions, names: tuple[str, ...] = NAMES) -> Box:
+    """The log10 box of the searched entries ``names`` for this stiffness parameterisation and measurement."""
+    rows = [_bounds(name, options) for name in names]
+    return Box(tuple(r[0] for r in rows), tuple(r[1] for r in rows), tuple(names))
+
+
+def _noise_value(noise: NoiseParams, name: str) -> float:
+    values = {"q_vy": noise.process_noise[0], "q_r": noise.process_noise[1], "q_psi": noise.heading_process_noise,
+              "q_cf": noise.process_noise[2], "q_cr": noise.process_noise[3], "r_vy": noise.measurement_noise[0],
+              "r_2": noise.measurement_noise[1]}
+    return float(values[name])
+
+
+def noise_to_vector(noise: NoiseParams, names: tuple[str, ...] = NAMES) -> np.ndarray:
+    """The log10 vector of the entries ``names`` of a NoiseParams (zero entries map to -inf; clip with the box)."""
+    values = np.array([_noise_value(noise, name) for name in names], dtype=np.float64)
     with np.errstate(divide="ignore"):
         return np.log10(values)
 
 
-def vector_to_noise(vector: np.ndarray, base: NoiseParams) -> NoiseParams:
-    """NoiseParams with Q and R from the log10 6-vector; everything else (heading Q, P0) from ``base``."""
-    values = [float(v) for v in 10.0 ** np.asarray(vector, dtype=np.float64)]
-    return replace(base, process_noise=tuple(values[:4]), measurement_noise=tuple(values[4:6]))
+def vector_to_noise(vector: np.ndarray, base: NoiseParams, names: tuple[str, ...] = NAMES) -> NoiseParams:
+    """NoiseParams with the entries ``names`` from the log10 vector; everything else (P0, ...) from ``base``."""
+    values = dict(zip(names, (float(v) for v in 10.0 ** np.asarray(vector, dtype=np.float64)), strict=True))
+    q, r = list(base.process_noise), list(base.measurement_noise)
+    for index, name in enumerate(("q_vy", "q_r", "q_cf", "q_cr")):
+        q[index] = values.get(name, q[index])
+    for index, name in enumerate(("r_vy", "r_2")):
+        r[index] = values.get(name, r[index])
+    return replace(base, process_noise=tuple(q), measurement_noise=tuple(r),
+                   heading_process_noise=values.get("q_psi", base.heading_process_noise))
 
 
-def candidate_matrices(positions: np.ndarray, config: EstimatorConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Diag Q (m, n) in the filter's state layout (densities) and diag R (m, 2) for log10 positions (m, 6).
+def candidate_matrices(positions: np.ndarray, config: EstimatorConfig,
+                       names: tuple[str, ...] = NAMES) -> tuple[np.ndarray, np.ndarray]:
+    """Diag Q (m, n) in the filter's state layout (densities) and diag R (m, 2) for log10 positions (m, len(names)).
 
-    The unsearched entries (heading and offset Q) keep the configured values.
+    The entries not searched (the offset Q, and any of Q/R not in ``names``) keep the configured values.
     """
     positions = np.atleast_2d(np.asarray(positions, dtype=np.float64))
-    if positions.shape[1] != len(NAMES):
-        raise ValueError(f"candidates must have {len(NAMES)} columns, got {positions.shape[1]}")
+    if positions.shape[1] != len(names):
+        raise ValueError(f"candidates must have {len(names)} columns, got {positions.shape[1]}")
+    if "q_psi" in names and config.options.measurement != "heading":
+        raise ValueError("q_psi is an entry of the heading measurement only")
     values = 10.0**positions
-    q = np.tile(FilterArrays.from_config(config).process_noise, (len(values), 1))
+    arrays = FilterArrays.from_config(config)
+    q = np.tile(arrays.process_noise, (len(values), 1))
+    r = np.tile(arrays.measurement_noise, (len(values), 1))
     scale = config.options.noise_rate_scale
-    motion = [X_VY, X_R]
-    q[:, motion] = values[:, :2] * scale
-    q[:, [X_THETA_F, X_THETA_R]] = values[:, 2:4] * scale
-    return np.ascontiguousarray(q), np.ascontiguousarray(values[:, 4:6])
+    for column, name in enumerate(names):
+        state = _STATE_OF[name]
+        if state is not None:
+            q[:, state] = values[:, column] * scale
+        else:
+            r[:, 0 if name == "r_vy" else 1] = values[:, column]
+    return np.ascontiguousarray(q), np.ascontiguousarray(r)
 
 
 # One entry per state size: numba caches only module-level functions (see ekf/entries.py).
@@ -152,35 +202,46 @@ def batch_objective(epochs, x0, p0, vehicle, settings, qs, rs, kind):  # noqa: A
 
 @dataclass(frozen=True)
 class TuningProblem:
-    """The objective of eq. (21) (or the NLL) over one epoch sequence, as a batch function of log10 Q/R."""
+    """The objective of eq. (21) (or the NLL) over one epoch sequence, as a batch function of log10 Q/R.
+
+    ``tune_stiffness_noise`` False (the default) searches the physical noises only, True adds the
+    stiffness random walks (:func:`searched_names`).
+    """
 
     config: EstimatorConfig
     kernel_input: np.ndarray
     objective: str = "mae"
+    tune_stiffness_noise: bool = False
 
     def __post_init__(self) -> None:
         if self.objective not in OBJECTIVES:
             raise ValueError(f"objective must be one of {', '.join(OBJECTIVES)}, got {self.objective!r}")
 
     @classmethod
-    def from_epochs(cls, config: EstimatorConfig, epochs: EpochArrays, objective: str = "mae") -> TuningProblem:
+    def from_epochs(cls, config: EstimatorConfig, epochs: EpochArrays, objective: str = "mae",
+                    tune_stiffness_noise: bool = False) -> TuningProblem:
         """Build from an epoch sequence (bag_io.read_epochs or the simulator)."""
-        return cls(config, kernel_input(epochs), objective)
+        return cls(config, kernel_input(epochs), objective, tune_stiffness_noise)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The searched entries, in the order of a position's columns."""
+        return searched_names(self.config.options, self.tune_stiffness_noise)
 
     @property
     def box(self) -> Box:
         """The search box for this configuration."""
-        return search_box(self.config.options)
+        return search_box(self.config.options, self.names)
 
     @property
     def start(self) -> np.ndarray:
         """The configuration's own Q/R as a log10 vector, clipped to the box."""
-        return self.box.clip(noise_to_vector(self.config.noise))
+        return self.box.clip(noise_to_vector(self.config.noise, self.names))
 
     def __call__(self, positions: np.ndarray) -> np.ndarray:
-        """Objective of each row of ``positions`` (m, 6)."""
+        """Objective of each row of ``positions`` (m, len(names))."""
         arrays = FilterArrays.from_config(self.config)
-        qs, rs = candidate_matrices(positions, self.config)
+        qs, rs = candidate_matrices(positions, self.config, self.names)
         return batch_objective(self.kernel_input, arrays.initial_state, arrays.initial_covariance, arrays.vehicle,
                                arrays.settings, qs, rs, OBJECTIVES[self.objective])
 
@@ -194,5 +255,4 @@ class TuningProblem:
 
     def tuned_config(self, position: np.ndarray) -> EstimatorConfig:
         """The configuration with Q/R from a log10 position."""
-        return replace(self.config, noise=vector_to_noise(position, self.config.noise))
-
+        return replace(self.config, noise=vector_to_noise(position, self.config.noise, self.names))

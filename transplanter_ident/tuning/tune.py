@@ -25,7 +25,7 @@ from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.evaluation.metrics import Table2Row, format_table2, table2_row
 from transplanter_ident.tuning.box import Box
 from transplanter_ident.tuning.cmaes import CmaesSettings, minimize_cmaes
-from transplanter_ident.tuning.problem import NAMES, TuningProblem
+from transplanter_ident.tuning.problem import TuningProblem
 from transplanter_ident.tuning.pso import (
     BatchObjective,
     IterationRecord,
@@ -44,6 +44,10 @@ class Problem(Protocol):
 
     config: EstimatorConfig
     objective: str
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The searched entries (a position's columns)."""
 
     @property
     def box(self) -> Box:
@@ -123,14 +127,15 @@ class Comparison:
 
 def tune(config: EstimatorConfig, epochs: EpochArrays, *, algorithm: str = "ipso", objective: str = "nll",
          particles: int = 20, iterations: int = 40, seed: int | None = None,
-         max_evaluations: int | None = None,
+         max_evaluations: int | None = None, tune_stiffness_noise: bool = False,
          on_iteration: Callable[[IterationRecord], None] | None = None) -> TuningOutcome:
     """Search Q/R on ``epochs``; ``config``'s own Q/R (clipped to the box) is one of the initial particles.
 
     So the result is never worse than the starting Q/R when that lies inside the search box.
-    ``seed`` None draws one (recorded in the outcome, so the run can be repeated).
+    ``seed`` None draws one (recorded in the outcome, so the run can be repeated). The physical
+    noises are searched, and the stiffness random walks too with ``tune_stiffness_noise``.
     """
-    problem = TuningProblem.from_epochs(config, epochs, objective)
+    problem = TuningProblem.from_epochs(config, epochs, objective, tune_stiffness_noise)
     return tune_problem(problem, algorithm=algorithm, particles=particles, iterations=iterations, seed=seed,
                         max_evaluations=max_evaluations, on_iteration=on_iteration)
 
@@ -185,10 +190,19 @@ def tuned_parameters(config: EstimatorConfig) -> dict[str, Any]:
     return flat
 
 
+def _kept_line(outcome: TuningOutcome) -> list[str]:
+    """The header line on the stiffness random walk, when it was kept at its designed value (split Q)."""
+    if "q_cf" in outcome.problem.names:
+        return []
+    q = outcome.problem.config.noise.process_noise
+    return [f"kept by design (not tuned): q_cf={q[2]:.3g}, q_cr={q[3]:.3g} (stiffness random walk), the offset Q "
+            "and the change mechanism; tuner --tune-stiffness-noise searches q_cf, q_cr too"]
+
+
 def header_comment(outcome: TuningOutcome, bag: str | Sequence[str], epochs: int | Sequence[int]) -> str:
     """The YAML's comment header: provenance of the numbers (one ``bag:`` line per bag)."""
     result = outcome.result
-    names = ", ".join(f"{n}={10.0**v:.3g}" for n, v in zip(NAMES, result.position, strict=True))
+    names = ", ".join(f"{n}={10.0**v:.3g}" for n, v in zip(outcome.problem.names, result.position, strict=True))
     bags = [bag] if isinstance(bag, (str, Path)) else list(bag)
     counts = [epochs] if isinstance(epochs, int) else list(epochs)
     lines = [f"bag: {Path(b).resolve()} ({n} epochs)" for b, n in zip(bags, counts, strict=True)]
@@ -201,5 +215,6 @@ def header_comment(outcome: TuningOutcome, bag: str | Sequence[str], epochs: int
         f"fitness: {result.fitness:.6g} (start {outcome.start_fitness:.6g}), evaluations: {result.evaluations}, "
         f"iterations: {result.iterations}",
         f"tuned: {names}",
+        *_kept_line(outcome),
         "Layer over the defaults: --params-file config/estimator.yaml --params-file <this file>",
     ])

@@ -1,0 +1,98 @@
+"""The estimate is invalid while the input is suspect (issues #11 and #14), online as offline.
+
+The validity decision (evaluation/validity.py) counts, per epoch, the input samples rejected since the
+previous epoch (the node in its callbacks, replay through epochs/counted.py, both in processing
+order) and the epochs the filter gated or rolled back; above ``validity.max_suspect_fraction`` of the
+window's epochs the estimate is not valid. Here: a bag with a stretch of velocity samples beyond
+``vehicle.max_speed`` is invalid there offline, and the node decides exactly the same over DDS.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import fuzz_bags
+import numpy as np
+import pytest
+from ros_harness import run_scenario
+from test_node import (
+    CONFIG,
+    PUBLISH_TYPES,
+    assert_all_finite,
+    bag_specs,
+    online_outputs,
+    record_spec,
+    replay_csv,
+)
+
+from transplanter_ident.config.parameters import ValiditySettings
+from transplanter_ident.config.params_file import EstimatorParams
+from transplanter_ident.ekf.layout import StepStatus
+from transplanter_ident.evaluation.validity import Sample, ValidityMonitor
+
+BAD_FROM, BAD_TO = 20.0, 32.0  # s into a 40 s drive: every other velocity sample 50 m/s (beyond max_speed 5)
+
+
+def _sample(t: float, rejected: int = 0, status: StepStatus = StepStatus.UPDATED) -> Sample:
+    return Sample(t=t, status=status, cf=8000.0, cr=10000.0, cf_std=80.0, cr_std=100.0,
+                  steering=0.2 * math.sin(t), yaw_rate=0.4 * math.sin(t), speed=2.0,
+                  antenna_lateral_velocity=0.15 * math.sin(t), nis=2.0, whitened_vy=(-1.0) ** round(10 * t),
+                  rejected=rejected)
+
+
+def test_rejected_samples_make_the_estimate_invalid_while_they_last() -> None:
+    """A synthetic 10 Hz stream: 1 epoch in 5 preceded by a rejection (20 % > 10 %) for 5 s; valid before and after."""
+    settings = ValiditySettings(window=4.0, hold_on=1.0, hold_off=0.5)
+    monitor = ValidityMonitor(settings, (50.0, 1.0e6), 0.4)
+    decisions = []
+    for k in range(300):
+        t = 0.1 * k
+        bad = 100 <= k < 150 and k % 5 == 0
+        decisions.append(monitor.step(_sample(t, rejected=3 if bad else 0)))
+    valid = np.array([d.valid for d in decisions])
+    assert valid[60:100].all()  # clean
+    assert not valid[135:165].any()  # the window (40 epochs) holds more than 4 suspect ones
+    assert all(any("input suspect" in r for r in d.reasons) for d in decisions[135:165])
+    assert valid[200:].all()  # the rejections left the window (4 s) and hold_on passed
+    # gated epochs count as suspect too; 1 in 20 (5 %) does not
+    monitor = ValidityMonitor(settings, (50.0, 1.0e6), 0.4)
+    gated = [monitor.step(_sample(0.1 * k, status=StepStatus.GATED if k % 20 == 0 else StepStatus.UPDATED)).valid
+             for k in range(300)]
+    assert all(gated[60:])
+
+
+def _suspect_bag(tmp_path: Path) -> Path:
+    base = fuzz_bags.make_base(tmp_path, seed=3, duration=40.0)  # sine drive, GNSS 5 Hz, steering 20 Hz
+    messages = base.copy_messages()
+    start = min(m.log_ns for m in messages)
+    velocity = [m for m in messages if m.topic == "/gnss/vel" and BAD_FROM <= (m.log_ns - start) / 1e9 < BAD_TO]
+    for m in velocity[::2]:
+        m.msg.twist.linear.x, m.msg.twist.linear.y = 50.0, 0.0
+    path = tmp_path / "suspect"
+    fuzz_bags.write_messages(messages, path)
+    return path
+
+
+def test_suspect_input_is_invalid_online_as_offline(tmp_path: Path) -> None:
+    bag = _suspect_bag(tmp_path)
+    offline = replay_csv(bag, tmp_path)
+    t = np.array([row["t"] for row in offline]) - offline[0]["t"]
+    valid = np.array([row["valid"] for row in offline]) > 0.5
+    assert valid[t < BAD_FROM].any(), "the clean start becomes valid"
+    # 2.5 rejections/s: more than 10 % of the 10 s window's 50 epochs after 2 s, then 1 s to recheck, hold_off 1 s
+    assert not valid[(t >= BAD_FROM + 4.5) & (t < BAD_TO)].any(), "invalid while the velocity is rejected"
+
+    specs = bag_specs(bag, EstimatorParams())  # 250 messages/s: gentle on best-effort inputs
+    result = run_scenario({
+        "estimator_args": ["--params-file", str(CONFIG)],
+        "record": record_spec(),
+        "publish_types": PUBLISH_TYPES,
+        "steps": [{"publish": specs, "pace": 0.004}, {"wait_for": ["measurement", len(offline), 30.0]},
+                  {"spin": 0.3}],
+    }, timeout=240)
+    assert result["alive"] and result["returncode"] == 0, result["log"]
+    online = online_outputs(result["records"])
+    assert_all_finite(result["records"])
+    assert [row["t"] for row in online] == pytest.approx([row["t"] for row in offline], abs=2e-6)
+    assert [row["valid"] for row in online] == [row["valid"] for row in offline]

@@ -1,0 +1,65 @@
+"""``tuner --estimate-delay``: find ``gnss.delay`` on the bags before tuning Q/R (issue #13 item 4).
+
+Each bag is decoded once into its input samples (:func:`transplanter_ident.bags.inputs.read_bag_inputs`);
+:func:`transplanter_ident.tuning.delay.search_delay` then scores each candidate delay by
+re-assembling every bag's epochs with it and running the filter at the starting Q/R (the
+(bag, delay) pairs of a grid run in parallel on the tuner's local backend). The bags' epochs at
+the estimated delay are what the Q/R search uses, and they go into the epoch cache under the
+parameters with that delay, so a later ``tuner --params-file OUT.yaml`` run skips decoding.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from transplanter_ident.config.params_file import EstimatorParams
+from transplanter_ident.tuning.delay import (
+    DELAY_RANGE,
+    DelayEstimate,
+    assemble_epochs,
+    delay_objective,
+    pooled,
+    search_delay,
+    with_delay,
+)
+from transplanter_ident.tuning.parallel import Backend
+
+
+@dataclass(frozen=True)
+class DelayRun:
+    """The estimate, the parameters with it, and each bag's ``bags.cache.DecodedBag`` at that delay."""
+
+    estimate: DelayEstimate
+    params: EstimatorParams
+    decoded: list[Any]
+
+
+def estimate_bag_delay(bags: Sequence[str], params: EstimatorParams, backend: Backend, *, objective: str,
+                       tune_stiffness_noise: bool = False, cache: Path | None = None, allow_partial: bool = False,
+                       delay_range: tuple[float, float] = DELAY_RANGE, stream: Any = None) -> DelayRun:
+    """Decode the bags once, search the delay, and return the bags' epochs at the estimate."""
+    from transplanter_ident.bags.cache import store_bag_epochs  # rosbags only where bags are read
+    from transplanter_ident.bags.inputs import read_bag_inputs
+
+    out = stream if stream is not None else sys.stderr
+    inputs = backend.map(read_bag_inputs, [(bag, params, allow_partial) for bag in bags])
+    for item in inputs:
+        print(f"tuner: {item.bag}: {len(item.samples)} input samples decoded for the delay search"
+              f"{f'; note: {item.note}' if item.note else ''}", file=out, flush=True)
+
+    def objective_of(delays: Sequence[float]) -> list[float]:
+        tasks = [(item.samples, params, d, objective, tune_stiffness_noise) for d in delays for item in inputs]
+        values = backend.map(delay_objective, tasks)
+        per_delay = [values[i * len(inputs):(i + 1) * len(inputs)] for i in range(len(delays))]
+        return [pooled(bag_values) for bag_values in per_delay]
+
+    estimate = search_delay(objective_of, *delay_range)
+    print(f"tuner: {estimate.format(objective)}", file=out, flush=True)
+    chosen = with_delay(params, estimate.delay)
+    decoded = [store_bag_epochs(item.bag, chosen, assemble_epochs(item.samples, params, estimate.delay),
+                                item.truth, cache) for item in inputs]
+    return DelayRun(estimate, chosen, decoded)

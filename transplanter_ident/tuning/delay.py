@@ -1,0 +1,142 @@
+"""Estimating the GNSS delay ``gnss.delay`` offline (issue #13 item 4; DESIGN.md section 7).
+
+A GNSS sample stamped t describes the motion at t - delay. At farm speeds the stiffness is read
+off a lateral lag of 40-65 ms, so an unconfigured delay of 80 ms costs about half the stiffness;
+the delay is a calibration constant, best found from the recorded drives.
+
+The search is one-dimensional, ahead of the Q/R search, on the tuner's own objective (eq. 21's
+mean |innovation| or the innovation NLL, :mod:`.problem`) at the *starting* Q/R, averaged over
+the bags with their epoch counts as weights (as :class:`.multi.MultiBagProblem`). Each delay
+gives its own epochs: the bag's input samples, decoded once (``bags.inputs``), are assembled
+again by the node's :class:`~transplanter_ident.epochs.assembler.EpochAssembler` with that
+delay (:func:`assemble_epochs`). A wrong delay shifts the measured response against the
+steering input, which the filter cannot explain, so the objective has its minimum near the
+true delay. :func:`search_delay`: a coarse grid over [low, high] (default 0-0.3 s in 20 ms
+steps), then a fine grid (2 ms) within one coarse step either side of the coarse minimum; the
+best point wins (ties: the smaller delay). Every grid's points are independent, so the caller
+evaluates them in parallel.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from transplanter_ident.config.parameters import EstimatorConfig
+from transplanter_ident.config.params_file import EstimatorParams
+from transplanter_ident.ekf.joint_ekf import run_sequence
+from transplanter_ident.ekf.layout import O_CF, O_CR, O_OFFSET
+from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
+from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.tuning.problem import TuningProblem
+
+#: s: the delays searched (receivers that stamp on arrival are 0-0.3 s late)
+DELAY_RANGE = (0.0, 0.3)
+COARSE_STEP = 0.02  # s
+FINE_STEP = 0.002  # s
+#: fewer epochs than this at a delay: that delay scores +inf
+MIN_DELAY_EPOCHS = 10
+#: rad: the range of ``vehicle.steering_offset`` (config/schema.py)
+MAX_OFFSET = 0.3
+
+Sample = tuple[str, float, tuple[float, ...]]
+#: objective of each delay of a batch (s) -> values (lower is better; non-finite = unusable)
+DelayObjective = Callable[[Sequence[float]], Sequence[float]]
+
+
+def with_delay(params: EstimatorParams, delay: float) -> EstimatorParams:
+    """The parameters with ``gnss.delay`` = ``delay`` (s)."""
+    return replace(params, gnss=replace(params.gnss, delay=float(delay)))
+
+
+def assemble_epochs(samples: Sequence[Sample], params: EstimatorParams, delay: float) -> EpochArrays:
+    """The epochs of ``samples`` (in arrival order) under the parameters with ``gnss.delay`` = ``delay``."""
+    settings = AssemblerSettings.from_params(with_delay(params, delay))
+    return EpochArrays(assemble(EpochAssembler(settings), samples))
+
+
+def warm_start(config: EstimatorConfig, epochs: EpochArrays) -> EstimatorConfig:
+    """``config`` started from the stiffness and steering offset a first pass over ``epochs`` ends with."""
+    final = run_sequence(config, epochs)[-1]
+    low, high = config.options.stiffness_bounds
+    stiffness = tuple(float(np.clip(final[i], low, high)) for i in (O_CF, O_CR))
+    if not all(math.isfinite(v) for v in (*stiffness, final[O_OFFSET])):
+        return config
+    offset = float(np.clip(final[O_OFFSET], -MAX_OFFSET, MAX_OFFSET))
+    return replace(config, noise=replace(config.noise, initial_stiffness=stiffness),
+                   vehicle=replace(config.vehicle, steering_offset=offset))
+
+
+def delay_objective(samples: Sequence[Sample], params: EstimatorParams, delay: float, objective: str,
+                    tune_stiffness_noise: bool = False, warm: bool = True) -> tuple[float, int]:
+    """(objective at the starting Q/R, epoch count) of one bag's samples assembled with ``delay``.
+
+    ``warm``: the filter starts from the stiffness and offset a first pass at this delay ended with
+    (:func:`warm_start`), so the start-up transient from ``ekf.initial_stiffness`` does not bias the delay.
+    """
+    epochs = assemble_epochs(samples, params, delay)
+    if len(epochs) < MIN_DELAY_EPOCHS:
+        return math.inf, len(epochs)
+    config = warm_start(params.config, epochs) if warm else params.config
+    problem = TuningProblem.from_epochs(config, epochs, objective, tune_stiffness_noise)
+    return float(problem(problem.start[None, :])[0]), len(epochs)
+
+
+def pooled(per_bag: Sequence[tuple[float, int]]) -> float:
+    """Epoch-weighted mean of per-bag (value, epochs), summed in bag order; +inf if any bag is unusable."""
+    total, count = 0.0, 0
+    for value, epochs in per_bag:
+        if not math.isfinite(value):
+            return math.inf
+        total += epochs * value
+        count += epochs
+    return total / count if count else math.inf
+
+
+@dataclass(frozen=True)
+class DelayEstimate:
+    """The delay with the lowest objective, and every (delay, objective) evaluated, by delay."""
+
+    delay: float
+    fitness: float
+    points: tuple[tuple[float, float], ...]
+
+    def value_at(self, delay: float) -> float:
+        """The objective evaluated at ``delay`` (NaN if it was not evaluated)."""
+        return next((v for d, v in self.points if abs(d - delay) < 1e-9), math.nan)
+
+    def format(self, objective: str = "objective") -> str:
+        """One line: the estimate, its objective, and the objective at 0 s for comparison."""
+        at_zero = self.value_at(0.0)
+        zero = f"; at 0 ms {at_zero:.6g}" if math.isfinite(at_zero) else ""
+        return (f"gnss.delay: {1e3 * self.delay:.0f} ms ({objective} {self.fitness:.6g} at the starting Q/R{zero}; "
+                f"{len(self.points)} delays evaluated)")
+
+
+def _grid(low: float, high: float, step: float) -> list[float]:
+    count = max(1, round((high - low) / step))
+    return [float(v) for v in np.round(np.linspace(low, high, count + 1), 9)]
+
+
+def search_delay(objective: DelayObjective, low: float = DELAY_RANGE[0], high: float = DELAY_RANGE[1],
+                 coarse: float = COARSE_STEP, fine: float = FINE_STEP) -> DelayEstimate:
+    """Minimise ``objective`` over [low, high]: a coarse grid, then a fine grid around its minimum."""
+    if not (math.isfinite(low) and math.isfinite(high) and low < high and 0.0 < fine <= coarse):
+        raise ValueError(f"delay search: need low < high and 0 < fine <= coarse, got [{low}, {high}], {coarse}, "
+                         f"{fine}")
+    seen: dict[float, float] = {}
+
+    def evaluate(delays: list[float]) -> None:
+        todo = [d for d in delays if d not in seen]
+        if todo:
+            values = objective(todo)
+            seen.update((d, float(v) if math.isfinite(v) else math.inf) for d, v in zip(todo, values, strict=True))
+
+    evaluate(_grid(low, high, coarse))
+    best = min(seen, key=lambda d: (seen[d], d))
+    evaluate(_grid(max(low, best - coarse), min(high, best + coarse), fine))
+    best = min(seen, key=lambda d: (seen[d], d))
+    return DelayEstimate(best, seen[best], tuple(sorted(seen.items())))
