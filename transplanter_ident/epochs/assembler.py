@@ -23,8 +23,9 @@ Here, for each GNSS epoch t_k (velocity and heading paired by stamp, :mod:`.pair
 Bad input (DESIGN.md section 6, issue #14) is rejected with a reason and a kind (:mod:`.checks`):
 non-finite values, invalid markers, quaternions that are no orientation, stamps out of order, a
 stamp far from the others (:mod:`.stamps`: an outlier, never the new reference; a lasting time
-step re-synchronises by itself), and the vehicle's physical limits: |speed|, then per epoch |yaw
-rate| and |lateral speed| at the CG. An epoch beyond a limit is dropped and does not become the
+step re-synchronises by itself), and the vehicle's physical limits: |speed|, a steering spike
+(faster than max_steering_rate; a second in a row is a real jump), then per epoch |yaw rate| and
+|lateral speed| at the CG. An epoch beyond a limit is dropped and does not become the
 next epoch's start, so one bad heading costs one epoch, not two; two in a row re-anchor.
 
 An epoch is formed only once the steering stream covers its interval (a steering sample at or
@@ -48,6 +49,7 @@ from transplanter_ident.epochs.epoch import Epoch, Rejection
 from transplanter_ident.epochs.frames import (
     body_velocity,
     heading_to_enu_yaw,
+    interval_rate_variance,
     lateral_variance,
     quaternion_yaw,
     remove_lever_arm,
@@ -85,6 +87,7 @@ class AssemblerSettings:
     max_speed: float = math.inf  # m/s: |GNSS ground speed| limit
     max_lateral_speed: float = math.inf  # m/s: |vy| at the CG
     max_yaw_rate: float = math.inf  # rad/s: |interval-mean yaw rate|
+    max_steering_rate: float = math.inf  # rad/s: |change from the last steering sample| / dt
 
     @classmethod
     def from_params(cls, params: EstimatorParams) -> AssemblerSettings:
@@ -104,7 +107,8 @@ class AssemblerSettings:
                    heading_offset=vehicle.heading_offset,
                    body_velocity_rotation=vehicle.heading_offset if one_odometry else 0.0,
                    max_stamp_jump=params.gnss.max_stamp_jump, max_speed=vehicle.max_speed,
-                   max_lateral_speed=vehicle.max_lateral_speed, max_yaw_rate=vehicle.max_yaw_rate)
+                   max_lateral_speed=vehicle.max_lateral_speed, max_yaw_rate=vehicle.max_yaw_rate,
+                   max_steering_rate=vehicle.max_steering_rate)
 
     def __post_init__(self) -> None:
         for name in ("velocity_frame", "heading_frame"):
@@ -140,6 +144,8 @@ class EpochAssembler:
         self._guard = StampGuard(settings.max_stamp_jump)
         self._steering: deque[tuple[float, float]] = deque(maxlen=MAX_STEERING_SAMPLES)
         self._last_steering_stamp = -math.inf
+        self._last_steering_angle = 0.0
+        self._steering_spikes = 0  # consecutive steering samples rejected as spikes
         self._pending: deque[tuple[float, float, float, float]] = deque()  # paired GNSS (t, vx_ant, vy_ant, yaw)
         self.uncovered_epochs = 0  # epochs formed before the steering covered their interval
         self._previous: _Anchor | None = None
@@ -158,8 +164,6 @@ class EpochAssembler:
         """Return and clear the rejections since the last call."""
         out, self.rejections = self.rejections, []
         return out
-
-    # ------------------------------------------------------------------ inputs
 
     def add_velocity(self, stamp: float, first: float, second: float, variance_first: float = 0.0,
                      variance_second: float = 0.0) -> list[Epoch]:
@@ -213,14 +217,19 @@ class EpochAssembler:
             return []
         if stamp <= self._last_steering_stamp:
             return self._reject("steering", stamp, "stamp not after the previous steering sample", checks.STAMP_ORDER)
+        rate = abs(angle - self._last_steering_angle) / (stamp - self._last_steering_stamp)
+        if rate > self.settings.max_steering_rate and self._steering_spikes + 1 < REANCHOR_AFTER:
+            self._steering_spikes += 1  # one spike is rejected; the next sample in a row is a real jump
+            return self._reject("steering", stamp, f"{rate:.3g} rad/s from the previous sample, beyond "
+                                f"vehicle.max_steering_rate {self.settings.max_steering_rate:g}", checks.STEERING_RATE)
+        self._steering_spikes = 0
         self._guard.accept("steering", stamp)
         self._last_steering_stamp = stamp
+        self._last_steering_angle = angle
         self._steering.append((stamp, angle))
         while len(self._steering) > 2 and self._steering[0][0] < stamp - self.settings.steering_buffer:
             self._steering.popleft()
         return self._flush()
-
-    # ------------------------------------------------------------------ checks
 
     def _add_velocity(self, stamp: float, payload: tuple[str, float, float], raw: tuple[float, float],
                       variances: tuple[float, float]) -> list[Epoch]:
@@ -275,8 +284,6 @@ class EpochAssembler:
     def _stale_gnss(self, stamp: float) -> bool:
         latest = self._pending[-1][0] if self._pending else (self._previous.t if self._previous else None)
         return latest is not None and stamp - self.settings.gnss_delay <= latest
-
-    # ------------------------------------------------------------------ pairing and epochs
 
     def _pair(self, role: str, stamp: float, payload: object) -> list[Epoch]:
         pairs, given_up = self._pairer.add(role, stamp, payload)
@@ -349,7 +356,7 @@ class EpochAssembler:
                      yaw_rate=yaw_rate, steering=steering[0], steering_rate=steering[1],
                      speed=0.5 * (previous.vx + vx), antenna_lateral_velocity=vy_ant,
                      velocity_variance=vy_variance, heading_variance=yaw_variance,
-                     yaw_rate_variance=_yaw_rate_variance(previous.yaw_variance, yaw_variance, dt))
+                     yaw_rate_variance=interval_rate_variance(previous.yaw_variance, yaw_variance, dt))
 
     def _limit_problem(self, yaw_rate: float, vy: float) -> tuple[str, str, str] | None:
         """(topic, reason, kind) when the epoch is beyond the vehicle's yaw-rate or lateral-speed limit."""
@@ -370,11 +377,6 @@ class EpochAssembler:
             return None  # nothing recent, or nothing before the interval's end (never extrapolate back)
         times, values = zip(*samples, strict=True)
         return interval_line(times, values, start, end)
-
-
-def _yaw_rate_variance(start: float, end: float, dt: float) -> float:
-    """Variance of the interval's (end - start) / dt from the two headings' reported variances (0: unknown)."""
-    return (start + end) / (dt * dt) if start > 0.0 and end > 0.0 else 0.0
 
 
 #: sample names of :func:`assemble` -> the assembler method that takes them

@@ -30,6 +30,7 @@ SPEED_LIMIT = "speed_limit"
 LATERAL_SPEED_LIMIT = "lateral_speed_limit"
 YAW_RATE_LIMIT = "yaw_rate_limit"
 STEERING_LIMIT = "steering_limit"
+STEERING_RATE = "steering_rate"
 QUATERNION_NORM = "quaternion_norm"
 MISSING_JOINT = "missing_joint"
 DUPLICATE_JOINT = "duplicate_joint"
@@ -48,6 +49,7 @@ SUMMARY_LABELS = {
     SPEED_LIMIT: "speed beyond vehicle.max_speed",
     LATERAL_SPEED_LIMIT: "lateral speed beyond vehicle.max_lateral_speed",
     YAW_RATE_LIMIT: "yaw rate beyond vehicle.max_yaw_rate",
+    STEERING_RATE: "steering spike beyond vehicle.max_steering_rate",
     QUATERNION_NORM: "orientation quaternion not of norm 1",
     DUPLICATE_JOINT: "joint names listed twice in the JointState",
     UNPAIRED: "no partner within gnss.pairing_tolerance",

@@ -63,6 +63,11 @@ def lateral_variance(variance_first: float, variance_second: float, yaw: float) 
     return s * s * variance_first + c * c * variance_second
 
 
+def interval_rate_variance(start: float, end: float, dt: float) -> float:
+    """Variance of (end - start) / dt from the two angles' reported variances (0: unknown, as either is)."""
+    return (start + end) / (dt * dt) if start > 0.0 and end > 0.0 else 0.0
+
+
 def remove_lever_arm(vx: float, vy: float, yaw_rate: float, antenna_x: float,
                      antenna_y: float) -> tuple[float, float]:
     """CG velocity from the antenna's: v_cg = v_ant - r e_z x p_ant."""
