@@ -66,14 +66,6 @@ def epoch_measurement_noise(r_noise, settings, heading, velocity_variance, headi
 def make_sequence_kernels(step_n, heading):  # noqa: ANN001, ANN201 - numba closures
     """``run_n`` and ``objective_n`` for one state size, around that size's ``step_n``."""
 
-    @inline_kernel
-    def step_row(epochs, k, x, p, model, memo, vehicle, settings, q, r_noise, r_epoch, ws, out):
-        epoch_measurement_noise(r_noise, settings, heading, epochs[k, E_VAR_VY], epochs[k, E_VAR_PSI],
-                                epochs[k, E_VAR_YAW_RATE], r_epoch)
-        return step_n(x, p, model, memo, vehicle, settings, q, r_epoch, epochs[k, E_T], epochs[k, E_SPEED],
-                      epochs[k, E_STEERING], epochs[k, E_STEERING_RATE], epochs[k, E_VY], epochs[k, E_PSI],
-                      epochs[k, E_YAW_RATE], ws, out)
-
     @sized_kernel
     def run_n(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs):
         """step_n over every row of ``epochs``; one output row per epoch."""
@@ -81,7 +73,11 @@ def make_sequence_kernels(step_n, heading):  # noqa: ANN001, ANN201 - numba clos
         out = np.zeros(N_OUTPUTS)
         r_epoch = np.zeros(2)
         for k in range(epochs.shape[0]):
-            step_row(epochs, k, x, p, model, memo, vehicle, settings, q, r_noise, r_epoch, ws, out)
+            epoch_measurement_noise(r_noise, settings, heading, epochs[k, E_VAR_VY], epochs[k, E_VAR_PSI],
+                                    epochs[k, E_VAR_YAW_RATE], r_epoch)
+            step_n(x, p, model, memo, vehicle, settings, q, r_epoch, epochs[k, E_T], epochs[k, E_SPEED],
+                   epochs[k, E_STEERING], epochs[k, E_STEERING_RATE], epochs[k, E_VY], epochs[k, E_PSI],
+                   epochs[k, E_YAW_RATE], ws, out)
             for j in range(N_OUTPUTS):
                 outputs[k, j] = out[j]
 
@@ -98,7 +94,11 @@ def make_sequence_kernels(step_n, heading):  # noqa: ANN001, ANN201 - numba clos
         total = 0.0
         count = 0
         for k in range(epochs.shape[0]):
-            status = step_row(epochs, k, x, p, model, memo, vehicle, settings, q, r_noise, r_epoch, ws, out)
+            epoch_measurement_noise(r_noise, settings, heading, epochs[k, E_VAR_VY], epochs[k, E_VAR_PSI],
+                                    epochs[k, E_VAR_YAW_RATE], r_epoch)
+            status = step_n(x, p, model, memo, vehicle, settings, q, r_epoch, epochs[k, E_T], epochs[k, E_SPEED],
+                            epochs[k, E_STEERING], epochs[k, E_STEERING_RATE], epochs[k, E_VY], epochs[k, E_PSI],
+                            epochs[k, E_YAW_RATE], ws, out)
             if status == StepStatus.DIVERGED or status == StepStatus.RESTARTED:
                 return DIVERGENCE_PENALTY
             if status != StepStatus.UPDATED and status != StepStatus.GATED and status != StepStatus.NONLINEAR:
