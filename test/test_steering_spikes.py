@@ -1,9 +1,10 @@
 """A steering sample that jumps is a spike (issue #14): rejected, counted, and it never moves the estimate.
 
 The fuzz suite found four steering positions of 400 set to 0.0 giving Cf +12 % with the estimate
-valid and nothing reported. ``vehicle.max_steering_rate`` (3 rad/s; actuators turn below about
-1 rad/s) rejects a sample that changes faster than that from the last one; a second such sample
-in a row is taken as a real jump (a re-zeroed sensor). Through real bags, over 10 seeds.
+valid and nothing reported. ``vehicle.max_steering_rate`` (1.5 rad/s; actuators turn below about
+1 rad/s) rejects a sample that changes more than that rate allows, plus 0.01 rad of sensor noise,
+from the last one; a second such sample in a row is taken as a real jump (a re-zeroed sensor).
+Through real bags, over 10 seeds.
 """
 
 from __future__ import annotations

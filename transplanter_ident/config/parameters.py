@@ -31,7 +31,7 @@ class VehicleParams:
     max_speed: float = 5.0  # m/s: a GNSS speed beyond it is rejected
     max_lateral_speed: float = 1.0  # m/s: an epoch with |vy| at the CG beyond it is rejected
     max_yaw_rate: float = 1.5  # rad/s: an epoch with |r| beyond it is rejected
-    max_steering_rate: float = 3.0  # rad/s: a steering sample this far from the last one is a spike
+    max_steering_rate: float = 1.5  # rad/s: a steering sample changing faster (plus 0.01 rad) is a spike
 
     def __post_init__(self) -> None:
         check_fields(self, "vehicle", positive=("mass", "lf", "lr", "max_steering", "max_speed", "max_lateral_speed",

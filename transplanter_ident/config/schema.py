@@ -139,9 +139,9 @@ SCHEMA: tuple[Param, ...] = (
            "rejected", 0.01, 50.0),
     _float("vehicle.max_yaw_rate", 1.5, "rad/s", "yaw rate (from heading increments) beyond which a GNSS epoch is "
            "rejected", 0.01, 20.0),
-    _float("vehicle.max_steering_rate", 3.0, "rad/s", "a steering sample that changes faster than this from the "
-           "last one is a spike and rejected; a second one in a row is taken as a real jump (steering actuators "
-           "turn below about 1 rad/s)", 0.01, 1000.0),
+    _float("vehicle.max_steering_rate", 1.5, "rad/s", "a steering sample that changes more than this times the "
+           "time since the last one, plus 0.01 rad of sensor noise, is a spike and rejected; a second one in a row "
+           "is taken as a real jump (steering actuators turn below about 1 rad/s)", 0.01, 1000.0),
     # GNSS timing
     _float("gnss.delay", 0.0, "s", "the GNSS velocity and heading stamped t describe the motion at t - delay "
            "(drivers that stamp on arrival: about their latency)", -1.0, 10.0),

@@ -217,11 +217,13 @@ class EpochAssembler:
             return []
         if stamp <= self._last_steering_stamp:
             return self._reject("steering", stamp, "stamp not after the previous steering sample", checks.STAMP_ORDER)
-        rate = abs(angle - self._last_steering_angle) / (stamp - self._last_steering_stamp)
-        if rate > self.settings.max_steering_rate and self._steering_spikes + 1 < REANCHOR_AFTER:
+        change = abs(angle - self._last_steering_angle)
+        allowed = self.settings.max_steering_rate * (stamp - self._last_steering_stamp) + checks.STEERING_NOISE
+        if change > allowed and self._steering_spikes + 1 < REANCHOR_AFTER:
             self._steering_spikes += 1  # one spike is rejected; the next sample in a row is a real jump
-            return self._reject("steering", stamp, f"{rate:.3g} rad/s from the previous sample, beyond "
-                                f"vehicle.max_steering_rate {self.settings.max_steering_rate:g}", checks.STEERING_RATE)
+            return self._reject("steering", stamp, f"{change:.3g} rad from the previous sample, beyond "
+                                f"vehicle.max_steering_rate {self.settings.max_steering_rate:g} rad/s",
+                                checks.STEERING_RATE)
         self._steering_spikes = 0
         self._guard.accept("steering", stamp)
         self._last_steering_stamp = stamp

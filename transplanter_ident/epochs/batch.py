@@ -156,7 +156,8 @@ def _accepted(settings: AssemblerSettings, kind: np.ndarray, stamp: np.ndarray,
         steer_stamps = stamp[is_steer]
         if (np.diff(steer_stamps) <= 0.0).any():
             return None
-        if (np.abs(np.diff(v[is_steer, 0])) / np.diff(steer_stamps) > settings.max_steering_rate).any():
+        allowed = settings.max_steering_rate * np.diff(steer_stamps) + checks.STEERING_NOISE
+        if (np.abs(np.diff(v[is_steer, 0])) > allowed).any():
             return None  # a steering spike: the streaming assembler's sequential check decides
         motion = np.where(is_steer, stamp, stamp - settings.gnss_delay)
         if not _guard_consistent(settings.max_stamp_jump, _STREAM[kind], motion):

@@ -55,6 +55,9 @@ SUMMARY_LABELS = {
     UNPAIRED: "no partner within gnss.pairing_tolerance",
 }
 
+#: rad: a steering change within max_steering_rate dt plus this is no spike (sensor noise at a high rate)
+STEERING_NOISE = 0.01
+
 #: the largest | |q| - 1 | of an orientation quaternion taken as a heading (float32 drivers stay far below)
 QUATERNION_NORM_TOLERANCE = 0.01
 
