@@ -41,6 +41,7 @@ from transplanter_ident.ekf.layout import (
     Z_VY,
 )
 from transplanter_ident.ekf.model import discretize_heading
+from transplanter_ident.ekf.sequence import heading_error_terms
 from transplanter_ident.jit import entry_kernel
 
 #: the parameters of the information matrix, in its order
@@ -100,8 +101,8 @@ def output_error_information(epochs, theta, vehicle, antenna_x, r_noise, segment
         x[:] = new_x
         sens[:, :] = new_sens
         # R of z = [vy_antenna, psi] as the filter takes it, inverted
-        r_psi = r_noise[Z_SECOND]
-        s00, s01, s11 = r_noise[Z_VY] + speed * speed * r_psi, -speed * r_psi, r_psi
+        extra00, extra01 = heading_error_terms(r_noise, speed)
+        s00, s01, s11 = r_noise[Z_VY] + extra00, extra01, r_noise[Z_SECOND]
         det = s00 * s11 - s01 * s01
         i00, i01, i11 = s11 / det, -s01 / det, s00 / det
         for p in range(N_INFORMATION):

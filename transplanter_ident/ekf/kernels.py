@@ -93,7 +93,7 @@ from transplanter_ident.ekf.layout import (
 )
 from transplanter_ident.ekf.model import discretize_heading, discretize_yaw_rate
 from transplanter_ident.ekf.recovery import make_recovery
-from transplanter_ident.ekf.sequence import make_sequence_kernels
+from transplanter_ident.ekf.sequence import heading_error_terms, make_sequence_kernels
 from transplanter_ident.ekf.update import make_update
 from transplanter_ident.epochs.frames import wrap_angle
 from transplanter_ident.jit import inline_kernel, sized_kernel
@@ -295,8 +295,9 @@ def make_kernels(heading):
         s01 = p[X_VY, h1] + antenna_x * p[X_R, h1]
         s11 = p[h1, h1] + r_noise[Z_SECOND]
         if heading:  # vy is the GNSS velocity turned by the measured heading: e_vy = e_v - vx e_psi
-            s00 += speed * speed * r_noise[Z_SECOND]
-            s01 -= speed * r_noise[Z_SECOND]
+            extra00, extra01 = heading_error_terms(r_noise, speed)
+            s00 += extra00
+            s01 += extra01
         det = s00 * s11 - s01 * s01
         if not det > 0.0:  # S lost positive definiteness (or is NaN): treat as divergence
             det = math.nan

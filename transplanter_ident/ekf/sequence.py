@@ -7,6 +7,7 @@ mean absolute innovation, or the innovation negative log-likelihood).
 Both take R per epoch from :func:`epoch_measurement_noise`: the configured R, or, with
 ``ekf.measurement_noise_from_covariance``, the variance the GNSS messages report wherever it is
 larger (the configured R is a floor; issue #12 item 5). The node's step does the same.
+:func:`heading_error_terms` is the full R's correlation, shared by the step and the Fisher information.
 """
 
 from __future__ import annotations
@@ -61,6 +62,15 @@ def epoch_measurement_noise(r_noise, settings, heading, velocity_variance, headi
         r_epoch[Z_VY] = floored_variance(r_noise[Z_VY], velocity_variance)
         second = heading_variance if heading else yaw_rate_variance
         r_epoch[Z_SECOND] = floored_variance(r_noise[Z_SECOND], second)
+
+
+@inline_kernel
+def heading_error_terms(r_noise, speed):
+    """What R gains in heading mode: (vx^2 R_psi, -vx R_psi) for (vy, vy) and (vy, psi).
+
+    The body-frame vy is the GNSS velocity turned by the *measured* heading, so e_vy = e_v - vx e_psi.
+    """
+    return speed * speed * r_noise[Z_SECOND], -speed * r_noise[Z_SECOND]
 
 
 def make_sequence_kernels(step_n, heading):  # noqa: ANN001, ANN201 - numba closures
