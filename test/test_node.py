@@ -558,8 +558,9 @@ def test_bad_input_is_reported_and_never_kills_or_poisons_the_node() -> None:
         seen = _diagnostics_between(diagnostics, start, end)
         summary[case] = sorted({f"{['OK', 'WARN', 'ERROR', 'STALE'][s['level']]} {s['name']}: {s['message']}"
                                 for s in seen if s["level"] > 0
-                                and s["name"] not in ("estimator: convergence", "estimator: excitation")})
-    print("\ndiagnostics per bad-input case (non-OK lines, convergence/excitation omitted):")
+                                and s["name"] not in ("estimator: convergence", "estimator: excitation",
+                                                      "estimator: identifiability")})
+    print("\ndiagnostics per bad-input case (non-OK lines, convergence/excitation/identifiability omitted):")
     for case, lines in summary.items():
         print(f"  {case}:")
         for line in lines or ["(all OK)"]:
@@ -577,6 +578,10 @@ def test_bad_input_is_reported_and_never_kills_or_poisons_the_node() -> None:
     assert during_wrap and all(s["level"] == 0 for s in during_wrap if s["name"].endswith("input"))
     final = [item for item in diagnostics if item["t"] <= marks["end"]["t"]][-1]["msg"]["status"]
     assert {s["name"]: s["level"] for s in final}["estimator: steering input"] == 0  # recovered
+    # the windowed Fisher information (issue #11 item 2): a bound, its weak direction and the filter's ratio to it
+    known = {v["key"]: v["value"] for v in next(s for s in final if s["name"] == "estimator: identifiability")["values"]}
+    assert int(known["window_epochs"]) > 0 and float(known["crb_weak_rel_std"]) > 0.0
+    assert len(known["crb_weak_direction"].split()) == 2 and float(known["filter_to_crb_cf"]) > 0.0
 
 
 def test_a_publisher_of_another_type_is_named_in_diagnostics() -> None:

@@ -271,6 +271,9 @@ SCHEMA: tuple[Param, ...] = (
          1, 100000, read_only=False),
     _float("diagnostics.rate_window", 5.0, "s", "span of arrivals over which input rates are computed", 0.1,
            3600.0, read_only=False),
+    _float("diagnostics.information_window", 60.0, "s", "span of epochs whose Fisher information of (ln Cf, "
+           "ln Cr) gives the Cramer-Rao bound, weak direction and its 1-sigma in the identifiability status",
+           1.0, 3600.0, read_only=False),
     _float("diagnostics.period", 1.0, "s", "time between /diagnostics messages", 0.01, 60.0),
     _str("diagnostics.latency_log", "", "file to append 't latency_s' per published epoch to (empty: off)"),
 )

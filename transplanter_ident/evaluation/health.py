@@ -54,9 +54,11 @@ class HealthThresholds:
     min_yaw_rate_rms: float = 0.02  # rad/s: RMS yaw rate over the window needed for excitation
     min_window_epochs: int = 5  # fewer moving epochs in the window: excitation unknown (WARN)
     rate_window: float = 5.0  # s of arrivals over which input rates are computed
+    information_window: float = 60.0  # s of epochs whose Fisher information the identifiability report sums
 
     def __post_init__(self) -> None:
-        check_fields(self, "diagnostics", positive=("stale_timeout", "window", "converged_rel_std", "rate_window"),
+        check_fields(self, "diagnostics", positive=("stale_timeout", "window", "converged_rel_std", "rate_window",
+                                                         "information_window"),
                      non_negative=("min_steering_rms", "min_yaw_rate_rms"))
         if self.min_window_epochs < 1:
             raise ValueError(f"diagnostics.min_window_epochs must be >= 1, got {self.min_window_epochs!r}")
