@@ -46,12 +46,10 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from transplanter_ident.cli.util import CliError, cli_main
-from transplanter_ident.config.parameters import EstimatorConfig
 from transplanter_ident.config.params_file import EstimatorParams, load_params
 from transplanter_ident.config.params_writer import write_params_yaml
-from transplanter_ident.ekf.joint_ekf import run_sequence
-from transplanter_ident.epochs.epoch import Epoch, EpochArrays
-from transplanter_ident.evaluation.cramer_rao import cramer_rao_bound, final_bound_line
+from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.evaluation.cramer_rao import final_bound_line
 from transplanter_ident.files import atomic_output_dir
 from transplanter_ident.tuning.multi import MultiBagProblem, leave_one_out
 from transplanter_ident.tuning.parallel import (
@@ -60,7 +58,7 @@ from transplanter_ident.tuning.parallel import (
     SerialBackend,
     default_jobs,
     open_backend,
-    warm_kernels,
+    warm_worker,
 )
 from transplanter_ident.tuning.problem import OBJECTIVES
 from transplanter_ident.tuning.pso import IterationRecord
@@ -309,24 +307,6 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
     if args.report:
         print(f"report: {len(written)} files in {args.report}")
     return 0
-
-
-def warm_worker(config: EstimatorConfig) -> None:
-    """A worker's start: what this process runs after the search (Table 2, the bound), then the objective.
-
-    This process compiles the objective meanwhile; the worker's kernels reach it through numba's disk
-    cache, so the compiles run on both cores instead of one after the other.
-    """
-    warm_replay_kernels(config)
-    warm_kernels(config)
-
-
-def warm_replay_kernels(config: EstimatorConfig) -> None:
-    """Load (or compile) what runs after the search: the filter run of Table 2 and the Cramér-Rao bound."""
-    still = EpochArrays([Epoch(t=0.2 * i, longitudinal_velocity=1.0, lateral_velocity=0.0, heading=0.0,
-                               yaw_rate=0.0, steering=0.0, steering_rate=0.0, speed=1.0) for i in range(3)])
-    cramer_rao_bound(config, still, config.noise.initial_stiffness, config.vehicle.steering_offset)
-    run_sequence(config, still)
 
 
 def check_finite(fitness: float, evaluations: int, bag: str) -> None:
