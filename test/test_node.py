@@ -580,8 +580,8 @@ def test_bad_input_is_reported_and_never_kills_or_poisons_the_node() -> None:
     assert {s["name"]: s["level"] for s in final}["estimator: steering input"] == 0  # recovered
     # the windowed Fisher information (issue #11 item 2): a bound, its weak direction and the filter's ratio to it
     known = {v["key"]: v["value"] for v in next(s for s in final if s["name"] == "estimator: identifiability")["values"]}
-    assert int(known["window_epochs"]) > 0 and float(known["crb_weak_rel_std"]) > 0.0
-    assert len(known["crb_weak_direction"].split()) == 2 and float(known["filter_to_crb_cf"]) > 0.0
+    assert float(known["memory_s"]) == 60.0 and float(known["crb_weak_rel_std"]) > 0.0
+    assert len(known["crb_weak_direction"].split()) == 2 and float(known["published_to_crb_cf"]) > 0.0
 
 
 def test_a_publisher_of_another_type_is_named_in_diagnostics() -> None:

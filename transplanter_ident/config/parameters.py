@@ -68,6 +68,11 @@ class FilterOptions:
     change_process_noise: float = 2.0e-2  # stiffness Q density after an alarm, (ln C)^2/s
     change_hold: float = 4.0  # s the raised density lasts after an alarm
     measurement_noise_from_covariance: bool = False  # R per epoch: the messages' variances, floored by R
+    identifiability_check: bool = True  # a band along a direction the recent data do not pin is the prior's
+    identifiability_memory: float = 60.0  # s of recent epochs whose Fisher information is summed
+    identifiability_max_epochs: int = 600  # at most this many of them (the latest)
+    identifiability_period: float = 1.0  # s of data between two evaluations of the information
+    max_identifiable_rel_std: float = 0.10  # Cramer-Rao 1-sigma (relative) above which a direction is not pinned
 
     def __post_init__(self) -> None:
         _check_choice("ekf.discretization", self.discretization, DISCRETIZATIONS)
@@ -84,7 +89,11 @@ class FilterOptions:
             raise ValueError(f"ekf.max_interval must be > 0, got {self.max_interval}")
         _check_choice("ekf.process_noise_units", self.process_noise_units, NOISE_UNITS)
         check_fields(self, "ekf", positive=("process_noise_step", "max_slip_angle", "max_lateral_acceleration",
-                                            "change_process_noise", "change_hold"))
+                                            "change_process_noise", "change_hold",
+                                            "identifiability_memory", "identifiability_period",
+                                            "max_identifiable_rel_std"))
+        if self.identifiability_max_epochs < 2:
+            raise ValueError(f"ekf.identifiability_max_epochs must be >= 2, got {self.identifiability_max_epochs!r}")
         if not (math.isfinite(self.change_scale) and self.change_scale > 1.0):
             raise ValueError(f"ekf.change_scale must be > 1, got {self.change_scale!r}")
         if not (math.isfinite(self.change_threshold) and self.change_threshold > 0.0):

@@ -225,6 +225,17 @@ SCHEMA: tuple[Param, ...] = (
     _float("ekf.change_process_noise", 2.0e-2, "(ln C)^2/s", "stiffness Q density (relative) for change_hold "
            "after a change alarm", 1.0e-8, 10.0),
     _float("ekf.change_hold", 4.0, "s", "how long the raised stiffness Q lasts after a change alarm", 0.01, 600.0),
+    # what the recent data pin (ekf/identifiability.py, /diagnostics "identifiability")
+    _bool("ekf.identifiability_check", True, "publish, along a direction of (ln Cf, ln Cr) whose Cramer-Rao bound "
+          "from the recent data exceeds ekf.max_identifiable_rel_std, at least the initial (prior) band"),
+    _float("ekf.identifiability_memory", 60.0, "s", "span of recent epochs whose Fisher information gives the "
+           "bound", 1.0, 3600.0),
+    _int("ekf.identifiability_max_epochs", 600, "at most this many of the recent epochs (the latest) are summed",
+         2, 100000),
+    _float("ekf.identifiability_period", 1.0, "s", "data time between two evaluations of the bound (held in "
+           "between)", 0.01, 60.0),
+    _float("ekf.max_identifiable_rel_std", 0.10, "", "relative Cramer-Rao 1-sigma above which the recent data "
+           "do not pin a direction of (ln Cf, ln Cr)", 1.0e-4, 10.0),
     # the learned state across restarts (ekf/persistence.py)
     _str("persistence.file", "$ROS_HOME/transplanter_ident/{node}.yaml", "where the learned stiffness, offset and "
          "covariance are kept across restarts ($ROS_HOME: ~/.ros when unset; {node}: the node name); empty: off"),
@@ -271,9 +282,6 @@ SCHEMA: tuple[Param, ...] = (
          1, 100000, read_only=False),
     _float("diagnostics.rate_window", 5.0, "s", "span of arrivals over which input rates are computed", 0.1,
            3600.0, read_only=False),
-    _float("diagnostics.information_window", 60.0, "s", "span of epochs whose Fisher information of (ln Cf, "
-           "ln Cr) gives the Cramer-Rao bound, weak direction and its 1-sigma in the identifiability status",
-           1.0, 3600.0, read_only=False),
     _float("diagnostics.period", 1.0, "s", "time between /diagnostics messages", 0.01, 60.0),
     _str("diagnostics.latency_log", "", "file to append 't latency_s' per published epoch to (empty: off)"),
 )

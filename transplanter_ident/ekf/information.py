@@ -30,6 +30,10 @@ from transplanter_ident.ekf.layout import (
     E_T,
     E_VY,
     E_YAW_RATE,
+    I_LN_CF,
+    I_LN_CR,
+    I_OFFSET,
+    N_INFORMATION,
     N_MOTION_HEADING,
     W_DE_F,
     W_DE_R,
@@ -44,11 +48,9 @@ from transplanter_ident.ekf.model import discretize_heading
 from transplanter_ident.ekf.sequence import heading_error_terms
 from transplanter_ident.jit import entry_kernel
 
-#: the parameters of the information matrix, in its order
+#: the parameters of the information matrix, in its order (layout.I_*)
 STIFFNESS_PARAMETERS = ("ln_cf", "ln_cr")
 INFORMATION_PARAMETERS = (*STIFFNESS_PARAMETERS, "steering_offset")
-N_INFORMATION = len(INFORMATION_PARAMETERS)
-I_LN_CF, I_LN_CR, I_OFFSET = range(N_INFORMATION)
 
 
 @entry_kernel

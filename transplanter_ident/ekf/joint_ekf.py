@@ -16,6 +16,7 @@ import numpy as np
 
 from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams
 from transplanter_ident.ekf.entries import ekf_step, objective_kernel, run_kernel
+from transplanter_ident.ekf.identifiability import IdentifiabilityGuard
 from transplanter_ident.ekf.layout import (
     EPOCH_COLUMNS,
     EULER,
@@ -209,6 +210,7 @@ class JointEKF:
     def __init__(self, config: EstimatorConfig) -> None:
         self._config = config
         self._arrays = FilterArrays.from_config(config)
+        self._guard = identifiability_guard(config, self._arrays)
         self._ws = work_buffer()
         self._out = np.zeros(N_OUTPUTS)
         self.reset()
@@ -224,11 +226,18 @@ class JointEKF:
         self.covariance = self._arrays.initial_covariance.copy()
         self._model = np.zeros(N_MODEL)
         self._memo = np.zeros(N_MEMO)
+        self._guard.reset()
+
+    @property
+    def recent_information(self) -> np.ndarray:
+        """(3, 3) Fisher information of (ln Cf, ln Cr, b) of the recent epochs (ekf/identifiability.py)."""
+        return self._guard.information
 
     def set_noise(self, noise: NoiseParams) -> None:
         """Swap Q and R at run time; the state and covariance carry on."""
         config = EstimatorConfig(vehicle=self._config.vehicle, options=self._config.options, noise=noise)
         arrays = FilterArrays.from_config(config)
+        self._guard.set_config(config)
         self._config, self._arrays = config, arrays
 
     def learned_state(self, stamp: float) -> LearnedState:
@@ -259,6 +268,7 @@ class JointEKF:
         ekf_step(self.state, self.covariance, self._model, self._memo, a.vehicle, a.settings,
                  a.process_noise, r_noise, epoch.t, epoch.speed, epoch.steering,
                  epoch.steering_rate, epoch.antenna_lateral_velocity, epoch.heading, epoch.yaw_rate, self._ws, self._out)
+        self._guard.step(epoch_row(epoch), self._out)
         return Estimate.from_row(epoch.t, self._out)
 
 
@@ -271,9 +281,22 @@ def run_sequence(config: EstimatorConfig, epochs: EpochArrays) -> np.ndarray:
     """Filter a whole epoch sequence; returns the (N, N_OUTPUTS) output rows."""
     a = FilterArrays.from_config(config)
     outputs = np.zeros((len(epochs), N_OUTPUTS))
-    run_kernel(kernel_input(epochs), a.initial_state.copy(), a.initial_covariance.copy(), np.zeros(N_MODEL),
+    rows = kernel_input(epochs)
+    run_kernel(rows, a.initial_state.copy(), a.initial_covariance.copy(), np.zeros(N_MODEL),
                np.zeros(N_MEMO), a.vehicle, a.settings, a.process_noise, a.measurement_noise, outputs)
+    identifiability_guard(config, a).run(rows, outputs)
     return outputs
+
+
+def identifiability_guard(config: EstimatorConfig, arrays: FilterArrays) -> IdentifiabilityGuard:
+    """The published band's guard (ekf/identifiability.py) for this configuration."""
+    return IdentifiabilityGuard(config, arrays.initial_state, arrays.initial_covariance,
+                                config.options.stiffness_state == "log")
+
+
+def epoch_row(epoch: Epoch) -> np.ndarray:
+    """The kernel input of one epoch (a row of kernel_input)."""
+    return np.array([getattr(epoch, name) for name in EPOCH_COLUMNS], dtype=np.float64)
 
 
 def sequence_objective(config: EstimatorConfig, epochs: EpochArrays, kind: str = "mae") -> float:

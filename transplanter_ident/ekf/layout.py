@@ -70,6 +70,10 @@ EXACT, EULER = 0, 1
 MAE, NLL = 0, 1
 DIVERGENCE_PENALTY = 1.0e6
 
+# the Fisher information's parameters (information.py), in its order
+I_LN_CF, I_LN_CR, I_OFFSET = 0, 1, 2
+N_INFORMATION = 3
+
 # work-buffer slots, ws[slot, i, j]: the discretisation (model.py) ...
 W_E, W_DE_F, W_DE_R, W_M, W_DM_F, W_DM_R = 0, 1, 2, 3, 4, 5
 W_T, W_DT_F, W_DT_R, W_NT, W_NDT_F, W_NDT_R = 6, 7, 8, 9, 10, 11

@@ -19,15 +19,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from transplanter_ident.config.parameters import EstimatorConfig
-from transplanter_ident.ekf.information import N_INFORMATION, STIFFNESS_PARAMETERS, output_error_information
+from transplanter_ident.ekf.identifiability import SEGMENT, stiffness_information, window_information
 from transplanter_ident.ekf.joint_ekf import kernel_input
-from transplanter_ident.ekf.layout import EULER, EXACT, O_CF, O_CF_STD, O_CR, O_CR_STD, O_OFFSET
-from transplanter_ident.ekf.model import vehicle_array, work_buffer
+from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD, O_OFFSET
 from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.evaluation.validity import Identifiability
-
-#: s: the open-loop model restarts from the measured state this often (multiple shooting)
-SEGMENT = 10.0
 
 
 @dataclass(frozen=True)
@@ -61,21 +57,15 @@ class CramerRaoBound:
 def cramer_rao_bound(config: EstimatorConfig, epochs: EpochArrays, cornering_stiffness: tuple[float, float],
                      steering_offset: float, segment: float = SEGMENT) -> CramerRaoBound | None:
     """The bound at (Cf, Cr, offset) from these epochs; None in yaw_rate mode or without information."""
-    options, noise = config.options, config.noise
+    options = config.options
     if options.measurement != "heading" or len(epochs) < 2 or min(cornering_stiffness) <= 0.0:
         return None
-    information = np.zeros((N_INFORMATION, N_INFORMATION))
     theta = np.array([math.log(cornering_stiffness[0]), math.log(cornering_stiffness[1]), steering_offset])
-    used = output_error_information(kernel_input(epochs), theta, vehicle_array(config.vehicle),
-                                    config.vehicle.antenna_x, np.array(noise.measurement_noise, dtype=np.float64),
-                                    segment, options.min_speed, options.max_interval,
-                                    EXACT if options.discretization == "exact" else EULER, work_buffer(), information)
-    stiffness = slice(0, len(STIFFNESS_PARAMETERS))
-    block = information if options.estimate_steering_offset else information[stiffness, stiffness]
-    if used == 0 or not np.all(np.isfinite(block)):
+    information, used = window_information(config, kernel_input(epochs), theta, segment)
+    if used == 0 or not np.all(np.isfinite(information)):
         return None
     try:
-        covariance = np.linalg.inv(block)[stiffness, stiffness]
+        covariance = np.linalg.inv(stiffness_information(information, options.estimate_steering_offset))
     except np.linalg.LinAlgError:
         return None
     if not (np.all(np.isfinite(covariance)) and covariance[0, 0] > 0.0 and covariance[1, 1] > 0.0):

@@ -54,11 +54,9 @@ class HealthThresholds:
     min_yaw_rate_rms: float = 0.02  # rad/s: RMS yaw rate over the window needed for excitation
     min_window_epochs: int = 5  # fewer moving epochs in the window: excitation unknown (WARN)
     rate_window: float = 5.0  # s of arrivals over which input rates are computed
-    information_window: float = 60.0  # s of epochs whose Fisher information the identifiability report sums
 
     def __post_init__(self) -> None:
-        check_fields(self, "diagnostics", positive=("stale_timeout", "window", "converged_rel_std", "rate_window",
-                                                         "information_window"),
+        check_fields(self, "diagnostics", positive=("stale_timeout", "window", "converged_rel_std", "rate_window"),
                      non_negative=("min_steering_rms", "min_yaw_rate_rms"))
         if self.min_window_epochs < 1:
             raise ValueError(f"diagnostics.min_window_epochs must be >= 1, got {self.min_window_epochs!r}")
@@ -168,6 +166,11 @@ class HealthMonitor:
         for window in self._events.values():
             window.span = thresholds.window
         self.pairing.set_window(thresholds.window)
+
+    @property
+    def last_estimate(self) -> Estimate | None:
+        """The filter's latest estimate (None before the first or after a reset)."""
+        return self._filter.last_estimate
 
     def reset_filter(self) -> None:
         """Forget the filter's history (after a reset); input statistics carry on."""

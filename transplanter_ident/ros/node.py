@@ -57,7 +57,7 @@ from transplanter_ident.ekf.persistence import Keeper, LearnedState, default_pat
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler
 from transplanter_ident.epochs.epoch import Epoch, Rejection
 from transplanter_ident.evaluation.health import HealthMonitor, HealthReport, should_publish
-from transplanter_ident.evaluation.information_window import InformationWindow
+from transplanter_ident.evaluation.identifiability_report import identifiability_report
 from transplanter_ident.evaluation.validity import monitor_for, sample_of
 from transplanter_ident.evaluation.windows import Throttle, reason_class
 from transplanter_ident.files import OptionalOutput
@@ -91,7 +91,6 @@ class EstimatorNode(Node):
         self._topics = {"velocity": topics.velocity, "heading": topics.heading, "steering": topics.steering}
         self._health = HealthMonitor(self._settings.thresholds, time.monotonic(), self._topics, name=self.get_name())
         self._validity = monitor_for(params.config, params.validity)
-        self._information = InformationWindow(params.config, self._settings.thresholds.information_window)
         self._rejected = 0  # input samples rejected since the last epoch (validity: suspect input)
         self._keeper = Keeper(default_path(str(parameter_value(params, "persistence.file")), self.get_name()),
                               float(parameter_value(params, "persistence.period")), params.config)
@@ -239,7 +238,6 @@ class EstimatorNode(Node):
             if decision.valid:
                 self._learned = self._ekf.learned_state(epoch.t)
             self._health.on_estimate(epoch, estimate, time.monotonic())
-            self._information.add(epoch, estimate)
             self._health.on_validity(decision)
             if not should_publish(estimate.status):
                 self._warn(("status", estimate.status), f"epoch t={epoch.t:.3f}: {estimate.status.name}, "
@@ -281,7 +279,8 @@ class EstimatorNode(Node):
     def _publish_diagnostics(self) -> None:
         self._save_learned_state()
         self._check_publisher_types()
-        identifiability = self._information.report(self.get_name(), self._settings.thresholds.converged_rel_std)
+        identifiability = identifiability_report(self.get_name(), self._ekf.recent_information,
+                                                 self._health.last_estimate, self._ekf.config.options)
         reports = self._health.report(time.monotonic()) + [identifiability] + self._output_reports()
         self._pub_diagnostics.publish(adapters.diagnostic_array(self.get_clock().now().to_msg(), reports,
                                                                 self.get_fully_qualified_name()))
@@ -334,7 +333,6 @@ class EstimatorNode(Node):
         self._rejected = 0
         self._assembler.reset()
         self._health.reset_filter()
-        self._information.clear()
 
     def _coerce_parameters(self, parameters: list[Parameter]) -> list[Parameter]:
         """Pre-set callback: integers become floats where floats are due; an unknown key is named in the log.
@@ -369,7 +367,6 @@ class EstimatorNode(Node):
         if settings.params.config.noise != self._settings.params.config.noise:
             self._ekf.set_noise(settings.params.config.noise)
         self._health.set_thresholds(settings.thresholds)
-        self._information.set_config(settings.params.config, settings.thresholds.information_window)
         self._validity.settings = settings.params.validity
         self._flat, self._settings = flat, settings
         changed = ", ".join(f"{p.name}={plain(p.value)}" for p in ours)
@@ -388,11 +385,8 @@ class EstimatorNode(Node):
 
 
 def _warm_up(params: EstimatorParams) -> None:
-    """Run the compiled filter step and the information sum once, so the first epoch and report are not slow."""
+    """Run the compiled filter step (and the information sum) once, so the first real epoch is not slow."""
     ekf = JointEKF(params.config)
-    window = InformationWindow(params.config, 1.0)
-    for t in (0.0, 0.1):
-        epoch = Epoch(t=t, longitudinal_velocity=1.0, lateral_velocity=0.0, heading=0.0, yaw_rate=0.0,
-                      steering=0.0, steering_rate=0.0, speed=1.0)
-        window.add(epoch, ekf.step(epoch))
-    window.report("warm-up", 1.0)
+    for t in (0.0, 0.1, 1.2):
+        ekf.step(Epoch(t=t, longitudinal_velocity=1.0, lateral_velocity=0.0, heading=0.0, yaw_rate=0.0,
+                       steering=0.0, steering_rate=0.0, speed=1.0))

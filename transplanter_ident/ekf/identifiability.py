@@ -1,0 +1,199 @@
+"""What the recent data pin: the published band of (ln Cf, ln Cr) along directions they do not (issues #10, #11).
+
+The EKF's covariance can narrow along a direction the data hardly inform: on the paper's slow
+held step (1 m/s) Cf moves the yaw rate only through the understeer term, the linearisation
+points wander, and the band ends far from the truth. So every ``ekf.identifiability_period`` of
+data the Fisher information of the recent epochs (the last ``ekf.identifiability_memory`` s, at
+most ``ekf.identifiability_max_epochs``) is summed at the current estimate
+(:func:`.information.output_error_information`), the steering offset taken as a nuisance:
+
+    J = I_ss - I_sb I_bs / I_bb          (2 x 2, ln Cf and ln Cr; I_ss alone without an offset state)
+
+Along each eigenvector v of J whose Cramér-Rao 1-sigma 1 / sqrt(lambda) exceeds
+``ekf.max_identifiable_rel_std``, the published covariance is at least the initial one:
+
+    P_pub = P + sum_v max(0, v^T P0 v - v^T P v) v v^T
+
+so the band says "the recent data do not tell" instead of a narrow, wrong number. The bound is
+evaluated at one estimate over the whole window: summing information at the estimates the
+filter held along the way overstates it about tenfold on the slow step, which is the EKF's own
+inconsistency. The filter's state and covariance are untouched; only the published std and
+correlation change, online (:meth:`IdentifiabilityGuard.step`) and offline (:meth:`~IdentifiabilityGuard.run`)
+alike.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+
+from transplanter_ident.config.parameters import EstimatorConfig
+from transplanter_ident.ekf.information import output_error_information
+from transplanter_ident.ekf.layout import (
+    E_T,
+    EULER,
+    EXACT,
+    I_OFFSET,
+    N_INFORMATION,
+    O_CF,
+    O_CF_STD,
+    O_CORRELATION,
+    O_CR,
+    O_CR_STD,
+    O_OFFSET,
+    O_STATUS,
+    X_THETA_F,
+    X_THETA_R,
+    StepStatus,
+)
+from transplanter_ident.ekf.model import vehicle_array, work_buffer
+
+#: s: the open-loop model restarts from the measured state this often (multiple shooting)
+SEGMENT = 10.0
+#: statuses whose epoch the filter did not take: they add no information and publish nothing
+SKIPPED = frozenset({StepStatus.REJECTED_INVALID, StepStatus.REJECTED_STAMP, StepStatus.DIVERGED})
+
+
+def window_information(config: EstimatorConfig, rows: np.ndarray, theta: np.ndarray,
+                       segment: float = SEGMENT) -> tuple[np.ndarray, int]:
+    """(3, 3) Fisher information of (ln Cf, ln Cr, b) of the epochs ``rows`` at ``theta``, and the epochs used."""
+    options = config.options
+    information = np.zeros((N_INFORMATION, N_INFORMATION))
+    used = output_error_information(np.ascontiguousarray(rows), np.asarray(theta, dtype=np.float64),
+                                    vehicle_array(config.vehicle), config.vehicle.antenna_x,
+                                    np.array(config.noise.measurement_noise, dtype=np.float64), segment,
+                                    options.min_speed, options.max_interval,
+                                    EXACT if options.discretization == "exact" else EULER, work_buffer(), information)
+    return information, int(used)
+
+
+def stiffness_information(information: np.ndarray, offset_estimated: bool) -> np.ndarray:
+    """(2, 2) information of (ln Cf, ln Cr) from (3, 3), the offset a nuisance parameter when estimated."""
+    stiffness = information[:I_OFFSET, :I_OFFSET].copy()
+    offset = information[I_OFFSET, I_OFFSET]
+    if offset_estimated and offset > 0.0:
+        cross = information[:I_OFFSET, I_OFFSET]
+        stiffness -= np.outer(cross, cross) / offset
+    return 0.5 * (stiffness + stiffness.T)
+
+
+def weak_directions(information: np.ndarray, offset_estimated: bool, limit: float) -> np.ndarray:
+    """(k, 2) unit vectors in (ln Cf, ln Cr) whose Cramér-Rao 1-sigma exceeds ``limit`` (k = 0, 1 or 2)."""
+    pinned = stiffness_information(information, offset_estimated)
+    if not np.all(np.isfinite(pinned)):
+        return np.eye(2)
+    values, vectors = np.linalg.eigh(pinned)
+    return vectors[:, values < 1.0 / (limit * limit)].T.copy()
+
+
+def published_covariance(covariance: np.ndarray, weak: np.ndarray, prior: np.ndarray) -> np.ndarray:
+    """(n, 2, 2): ``covariance`` (n, 2, 2) raised to ``prior`` (2, 2) along each of the ``weak`` directions."""
+    published = covariance.copy()
+    for v in weak:
+        own = v[0] * v[0] * covariance[:, 0, 0] + 2.0 * v[0] * v[1] * covariance[:, 0, 1] + v[1] * v[1] * covariance[:, 1, 1]
+        target = v[0] * v[0] * prior[0, 0] + 2.0 * v[0] * v[1] * prior[0, 1] + v[1] * v[1] * prior[1, 1]
+        add = np.maximum(target - own, 0.0)
+        published[:, 0, 0] += add * v[0] * v[0]
+        published[:, 0, 1] += add * v[0] * v[1]
+        published[:, 1, 0] += add * v[0] * v[1]
+        published[:, 1, 1] += add * v[1] * v[1]
+    return published
+
+
+class IdentifiabilityGuard:
+    """The recent epochs, the bound they give, and the band published from them (see the module docstring)."""
+
+    def __init__(self, config: EstimatorConfig, initial_state: np.ndarray, initial_covariance: np.ndarray,
+                 log_state: bool) -> None:
+        options = config.options
+        self.enabled = options.identifiability_check and options.measurement == "heading"
+        self._config = config
+        self._prior = _relative_prior(initial_state, initial_covariance, log_state)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the recent epochs (a filter reset): until the next evaluation every direction is weak."""
+        self._rows: deque[np.ndarray] = deque(maxlen=self._config.options.identifiability_max_epochs)
+        self._next = -math.inf
+        self.information = np.zeros((N_INFORMATION, N_INFORMATION))  # at the last evaluation
+        self._weak = np.eye(2)
+
+    def set_config(self, config: EstimatorConfig) -> None:
+        """New R (run time): used from the next evaluation."""
+        self._config = config
+
+    def step(self, row: np.ndarray, out: np.ndarray) -> None:
+        """One epoch (kernel input row, its output row): the node's path; ``out`` is published in place."""
+        if not self.enabled or not _taken(out):
+            return
+        t = float(row[E_T])
+        self._rows.append(np.array(row, dtype=np.float64))
+        while self._rows[0][E_T] < t - self._config.options.identifiability_memory:
+            self._rows.popleft()
+        if t >= self._next:
+            self._evaluate(np.array(self._rows), out, t)
+        out[:] = _published(out[None, :], self._weak, self._prior)[0]
+
+    def run(self, rows: np.ndarray, outputs: np.ndarray) -> None:
+        """A whole sequence (kernel input, output rows): replay's path, the same numbers as :meth:`step`."""
+        if not self.enabled or len(rows) == 0:
+            return
+        options = self._config.options
+        taken = np.nonzero([_taken(o) for o in outputs])[0]
+        times = rows[taken, E_T]
+        start = 0
+        for position, k in enumerate(taken):
+            if times[position] < self._next:
+                continue
+            if position > start:  # publish the epochs since the last evaluation with its directions
+                outputs[taken[start:position]] = _published(outputs[taken[start:position]], self._weak, self._prior)
+            low = max(int(np.searchsorted(times, times[position] - options.identifiability_memory, "left")),
+                      position + 1 - options.identifiability_max_epochs)
+            self._evaluate(rows[taken[low:position + 1]], outputs[k], float(times[position]))
+            start = position
+        outputs[taken[start:]] = _published(outputs[taken[start:]], self._weak, self._prior)
+
+    def _evaluate(self, rows: np.ndarray, out: np.ndarray, t: float) -> None:
+        options = self._config.options
+        theta = np.array([math.log(out[O_CF]), math.log(out[O_CR]), out[O_OFFSET]])
+        self.information, _ = window_information(self._config, rows, theta)
+        self._weak = weak_directions(self.information, options.estimate_steering_offset,
+                                     options.max_identifiable_rel_std)
+        self._next = t + options.identifiability_period
+
+
+def _taken(out: np.ndarray) -> bool:
+    """Whether the filter took the epoch of this output row (and it has a stiffness)."""
+    return int(out[O_STATUS]) not in SKIPPED and out[O_CF] > 0.0 and out[O_CR] > 0.0
+
+
+def _published(rows: np.ndarray, weak: np.ndarray, prior: np.ndarray) -> np.ndarray:
+    """Output ``rows`` with their std and correlation raised along the ``weak`` directions."""
+    outputs = rows.copy()
+    if len(weak) == 0 or len(outputs) == 0:
+        return outputs
+    front, rear = outputs[:, O_CF_STD] / outputs[:, O_CF], outputs[:, O_CR_STD] / outputs[:, O_CR]
+    cross = outputs[:, O_CORRELATION] * front * rear
+    covariance = np.empty((len(outputs), 2, 2))
+    covariance[:, 0, 0], covariance[:, 0, 1], covariance[:, 1, 0], covariance[:, 1, 1] = \
+        front * front, cross, cross, rear * rear
+    published = published_covariance(covariance, weak, prior)
+    new_front, new_rear = np.sqrt(published[:, 0, 0]), np.sqrt(published[:, 1, 1])
+    denominator = new_front * new_rear
+    outputs[:, O_CF_STD] = outputs[:, O_CF] * new_front
+    outputs[:, O_CR_STD] = outputs[:, O_CR] * new_rear
+    outputs[:, O_CORRELATION] = np.where(denominator > 0.0, published[:, 0, 1] / np.where(denominator > 0.0,
+                                                                                             denominator, 1.0), 0.0)
+    return outputs
+
+
+def _relative_prior(initial_state: np.ndarray, initial_covariance: np.ndarray, log_state: bool) -> np.ndarray:
+    """P0 of (ln Cf, ln Cr): the state's own in log mode, divided by C0^2 in linear mode."""
+    index = [X_THETA_F, X_THETA_R]
+    block = np.asarray(initial_covariance, dtype=np.float64)[np.ix_(index, index)]
+    if log_state:
+        return block
+    scale = np.asarray(initial_state, dtype=np.float64)[index]
+    return block / np.outer(scale, scale)
