@@ -28,6 +28,7 @@ from transplanter_ident.config.params_file import (
 )
 from transplanter_ident.config.params_writer import write_params_yaml
 from transplanter_ident.config.safe_yaml import SEALED_FIRST_LINE, SEALED_LAST_LINE
+from transplanter_ident.config.schema import PARAMS
 from transplanter_ident.files import OutputError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -209,9 +210,11 @@ def test_write_read_round_trip(tmp_path: Path) -> None:
                            "  ros__parameters:\n")
     assert text.endswith(f"\n{SEALED_LAST_LINE}\n")  # the seal: a file cut short is refused (issue #14)
     assert load_params([path]) == _tuned()
-    # Every number is a float except the integer parameter ekf.max_gated.
+    # Every number is a float except the integer parameters (kind "int" in the schema).
+    integers = {key.rsplit(".", 1)[-1] for key, row in PARAMS.items() if row.kind == "int"}
+    assert "max_gated" in integers
     for line in text.splitlines():
-        if line.lstrip().startswith("#") or "max_gated" in line:
+        if line.lstrip().startswith("#") or line.strip().split(":", 1)[0] in integers:
             continue
         value = line.split(":", 1)[1]
         assert not re.search(r"(?<![\w.\-+])-?\d+(?![\w.])", value), line
