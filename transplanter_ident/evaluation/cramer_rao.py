@@ -50,7 +50,7 @@ class CramerRaoBound:
         front, rear = self.relative_std
         ratios = [f"{s / b:.2g}x" if b > 0.0 else "-" for s, b in zip(filter_relative_std, (front, rear), strict=True)]
         return (f"Cramér-Rao bound at the final estimate ({self.epochs} epochs, output error over {SEGMENT:g} s "
-                f"segments): Cf +- {100 * front:.3g} %, Cr +- {100 * rear:.3g} %; the filter's 1-sigma is "
+                f"segments): Cf +- {100 * front:.3g} %, Cr +- {100 * rear:.3g} %; the published 1-sigma is "
                 f"{ratios[0]} / {ratios[1]} of it; {self.identifiability.describe()}")
 
 
