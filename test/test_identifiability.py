@@ -113,3 +113,45 @@ def test_the_report_without_data_and_when_off() -> None:
     assert identifiability_report("n", np.zeros((3, 3)), None, options).level == WARN
     off = identifiability_report("n", np.zeros((3, 3)), None, replace(options, identifiability_check=False))
     assert off.level == OK and "not computed" in off.message
+
+
+class _Rows:
+    """Field work: a sine steer (a headland turn) for 40 s, a straight row for 120 s, turning again."""
+
+    def __call__(self, t: np.ndarray) -> np.ndarray:
+        t = np.asarray(t, dtype=float)
+        turning = (t < 40.0) | ((t >= 160.0) & (t < 200.0))
+        return np.where(turning, math.radians(15.0) * np.sin(2.0 * math.pi * t / 6.0), 0.0)
+
+
+def test_a_long_straight_row_keeps_the_last_turns_bound() -> None:
+    """3 seeds: 120 s of straight driving do not turn the filter's band into the prior's (the bound is held).
+
+    When the turning resumes, the 60 s window holds mostly the straight for a few seconds: the band
+    may be the prior's there (at most 10 % of the next 40 s), never after.
+    """
+    config = EstimatorConfig()
+    off = EstimatorConfig(options=replace(config.options, identifiability_check=False))
+    for seed in range(3):
+        arrays = EpochArrays(epochs_from_result(simulate(sine_drive(seed, steering=_Rows(), duration=220.0)),
+                                                config.vehicle))
+        guarded, plain = run_sequence(config, arrays), run_sequence(off, arrays)
+        t = arrays.t
+        same = ((t >= 30.0) & (t < 160.0)) | (t >= 200.0)
+        np.testing.assert_array_equal(guarded[same], plain[same])
+        resumed = (t >= 160.0) & (t < 200.0)
+        assert np.mean(guarded[resumed, O_CF_STD] != plain[resumed, O_CF_STD]) <= 0.10
+
+
+def test_a_restored_state_keeps_its_own_band() -> None:
+    config = EstimatorConfig()
+    epochs = epochs_from_result(simulate(sine_drive(2, duration=30.0)), config.vehicle)
+    before = JointEKF(config)
+    for epoch in epochs:
+        before.step(epoch)
+    learned = before.learned_state(epochs[-1].t)
+    after = JointEKF(config)
+    after.restore(learned)
+    straight = replace(epochs[-1], t=epochs[-1].t + 0.2, steering=0.0, steering_rate=0.0)
+    estimate = after.step(straight)
+    assert estimate.cornering_stiffness_front_std / estimate.cornering_stiffness_front < 0.5

@@ -71,6 +71,7 @@ class FilterOptions:
     identifiability_check: bool = True  # a band along a direction the recent data do not pin is the prior's
     identifiability_memory: float = 60.0  # s of recent epochs whose Fisher information is summed
     identifiability_max_epochs: int = 600  # at most this many of them (the latest)
+    identifiability_min_steering: float = 0.05  # rad: re-evaluated only while the wheels are turned this much
     identifiability_period: float = 1.0  # s of data between two evaluations of the information
     max_identifiable_rel_std: float = 0.10  # Cramer-Rao 1-sigma (relative) above which a direction is not pinned
 
@@ -91,7 +92,7 @@ class FilterOptions:
         check_fields(self, "ekf", positive=("process_noise_step", "max_slip_angle", "max_lateral_acceleration",
                                             "change_process_noise", "change_hold",
                                             "identifiability_memory", "identifiability_period",
-                                            "max_identifiable_rel_std"))
+                                            "max_identifiable_rel_std"), non_negative=("identifiability_min_steering",))
         if self.identifiability_max_epochs < 2:
             raise ValueError(f"ekf.identifiability_max_epochs must be >= 2, got {self.identifiability_max_epochs!r}")
         if not (math.isfinite(self.change_scale) and self.change_scale > 1.0):

@@ -230,8 +230,10 @@ SCHEMA: tuple[Param, ...] = (
           "from the recent data exceeds ekf.max_identifiable_rel_std, at least the initial (prior) band"),
     _float("ekf.identifiability_memory", 60.0, "s", "span of recent epochs whose Fisher information gives the "
            "bound", 1.0, 3600.0),
-    _int("ekf.identifiability_max_epochs", 600, "at most this many of the recent epochs (the latest) are summed",
-         2, 100000),
+    _int("ekf.identifiability_max_epochs", 600, "at most this many of them (the latest) are summed", 2, 100000),
+    _float("ekf.identifiability_min_steering", 0.05, "rad", "the bound is re-evaluated only at epochs whose wheel "
+           "angle is at least this (on a straight it is held: straight driving adds next to no information)",
+           0.0, 1.6),
     _float("ekf.identifiability_period", 1.0, "s", "data time between two evaluations of the bound (held in "
            "between)", 0.01, 60.0),
     _float("ekf.max_identifiable_rel_std", 0.10, "", "relative Cramer-Rao 1-sigma above which the recent data "

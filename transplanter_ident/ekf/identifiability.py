@@ -9,9 +9,11 @@ most ``ekf.identifiability_max_epochs``) is summed at the current estimate
 
     J = I_ss - I_sb I_bs / I_bb          (2 x 2, ln Cf and ln Cr; I_ss alone without an offset state)
 
-(Every ``RELAXED_PERIODS`` periods only, while J pins every direction with a wide margin.)
-Along each eigenvector v of J whose Cramér-Rao 1-sigma 1 / sqrt(lambda) exceeds
-``ekf.max_identifiable_rel_std``, the published covariance is at least the initial one:
+It is evaluated only at epochs whose wheel angle is at least ``ekf.identifiability_min_steering``
+(on a straight the data add next to no information, so the last bound is held), and only every
+``RELAXED_PERIODS`` periods while J pins every direction with a wide margin. Along each
+eigenvector v of J whose Cramér-Rao 1-sigma 1 / sqrt(lambda) exceeds ``ekf.max_identifiable_rel_std``,
+the published covariance is at least the initial one:
 
     P_pub = P + sum_v max(0, v^T P0 v - v^T P v) v v^T
 
@@ -19,8 +21,8 @@ so the band says "the recent data do not tell" instead of a narrow, wrong number
 evaluated at one estimate over the whole window: summing information at the estimates the
 filter held along the way overstates it about tenfold on the slow step, which is the EKF's own
 inconsistency. The filter's state and covariance are untouched; only the published std and
-correlation change, online (:meth:`IdentifiabilityGuard.step`) and offline (:meth:`~IdentifiabilityGuard.run`)
-alike.
+correlation change, online (:meth:`IdentifiabilityGuard.step`) and offline
+(:meth:`IdentifiabilityGuard.run`) alike.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ import numpy as np
 from transplanter_ident.config.parameters import EstimatorConfig
 from transplanter_ident.ekf.information import output_error_information
 from transplanter_ident.ekf.layout import (
+    E_STEERING,
     E_T,
     EULER,
     EXACT,
@@ -125,6 +128,10 @@ class IdentifiabilityGuard:
         self.information = np.zeros((N_INFORMATION, N_INFORMATION))  # at the last evaluation
         self._weak = np.eye(2)
 
+    def trust_restored(self) -> None:
+        """A learned state was restored (persistence): its own, inflated covariance stands until the next bound."""
+        self._weak = np.zeros((0, 2))
+
     def set_config(self, config: EstimatorConfig) -> None:
         """New R (run time): used from the next evaluation."""
         self._config = config
@@ -133,11 +140,12 @@ class IdentifiabilityGuard:
         """One epoch (kernel input row, its output row): the node's path; ``out`` is published in place."""
         if not self.enabled or not _taken(out):
             return
+        options = self._config.options
         t = float(row[E_T])
         self._rows.append(np.array(row, dtype=np.float64))
-        while self._rows[0][E_T] < t - self._config.options.identifiability_memory:
+        while self._rows[0][E_T] < t - options.identifiability_memory:
             self._rows.popleft()
-        if t >= self._next:
+        if t >= self._next and _turning(row, out, options.identifiability_min_steering):
             self._evaluate(np.array(self._rows), out, t)
         out[:] = _published(out[None, :], self._weak, self._prior)[0]
 
@@ -150,12 +158,12 @@ class IdentifiabilityGuard:
         times = rows[taken, E_T]
         start = 0
         for position, k in enumerate(taken):
-            if times[position] < self._next:
+            if times[position] < self._next or not _turning(rows[k], outputs[k], options.identifiability_min_steering):
                 continue
-            if position > start:  # publish the epochs since the last evaluation with its directions
-                outputs[taken[start:position]] = _published(outputs[taken[start:position]], self._weak, self._prior)
             low = max(int(np.searchsorted(times, times[position] - options.identifiability_memory, "left")),
                       position + 1 - options.identifiability_max_epochs)
+            if position > start:  # publish the epochs since the last evaluation with its directions
+                outputs[taken[start:position]] = _published(outputs[taken[start:position]], self._weak, self._prior)
             self._evaluate(rows[taken[low:position + 1]], outputs[k], float(times[position]))
             start = position
         outputs[taken[start:]] = _published(outputs[taken[start:]], self._weak, self._prior)
@@ -168,6 +176,11 @@ class IdentifiabilityGuard:
         self._weak = weak_directions(self.information, options.estimate_steering_offset, limit)
         firm = len(weak_directions(self.information, options.estimate_steering_offset, limit / RELAXED_MARGIN)) == 0
         self._next = t + options.identifiability_period * (RELAXED_PERIODS if firm else 1)
+
+
+def _turning(row: np.ndarray, out: np.ndarray, min_steering: float) -> bool:
+    """Whether an epoch can inform the stiffness: the wheels are turned (straight driving adds ~nothing)."""
+    return abs(row[E_STEERING] - out[O_OFFSET]) >= min_steering
 
 
 def _taken(out: np.ndarray) -> bool:

@@ -256,6 +256,7 @@ class JointEKF:
             self.state[X_OFFSET] = learned.offset
         index = np.ix_(PARAMETER_STATES, PARAMETER_STATES)
         self.covariance[index] = block
+        self._guard.trust_restored()
 
     def step(self, epoch: Epoch) -> Estimate:
         """Filter one epoch (eq. 12) and return the estimate."""
