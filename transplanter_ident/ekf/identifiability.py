@@ -79,6 +79,8 @@ def window_information(config: EstimatorConfig, rows: np.ndarray, theta: np.ndar
 
 def stiffness_information(information: np.ndarray, offset_estimated: bool) -> np.ndarray:
     """(2, 2) information of (ln Cf, ln Cr) from (3, 3), the offset a nuisance parameter when estimated."""
+    if not np.all(np.isfinite(information)):  # bad input reached the sum: nothing is known
+        return np.full((I_OFFSET, I_OFFSET), np.nan)
     stiffness = information[:I_OFFSET, :I_OFFSET].copy()
     offset = information[I_OFFSET, I_OFFSET]
     if offset_estimated and offset > 0.0:

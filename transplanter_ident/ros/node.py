@@ -387,6 +387,6 @@ class EstimatorNode(Node):
 def _warm_up(params: EstimatorParams) -> None:
     """Run the compiled filter step (and the information sum) once, so the first real epoch is not slow."""
     ekf = JointEKF(params.config)
-    for t in (0.0, 0.1, 1.2):
+    for t in (0.0, 0.1, 1.2):  # turned wheels: the identifiability bound is evaluated too
         ekf.step(Epoch(t=t, longitudinal_velocity=1.0, lateral_velocity=0.0, heading=0.0, yaw_rate=0.0,
-                       steering=0.0, steering_rate=0.0, speed=1.0))
+                       steering=0.1, steering_rate=0.0, speed=1.0))
