@@ -15,7 +15,17 @@ from helpers import epochs_from_result, sim_samples
 
 from transplanter_ident.config.parameters import EstimatorConfig
 from transplanter_ident.ekf.joint_ekf import run_sequence
-from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CHANGE, O_CR, O_CR_STD, O_OFFSET, O_STATUS
+from transplanter_ident.ekf.layout import (
+    O_CF,
+    O_CF_STD,
+    O_CHANGE,
+    O_CR,
+    O_CR_STD,
+    O_OFFSET,
+    O_STATUS,
+    O_TIRE_BIAS_F,
+    O_TIRE_BIAS_R,
+)
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
 from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.sim.signals import StiffnessSchedule, sine_steering
@@ -52,6 +62,14 @@ class Run:
     def final_errors(self) -> tuple[float, float]:
         """Relative error of the last estimate of Cf and Cr."""
         return self.cf[-1] / self.true_cf[-1] - 1.0, self.cr[-1] / self.true_cr[-1] - 1.0
+
+    def final_rel_std(self) -> tuple[float, float]:
+        """Relative std of the last estimate of Cf and Cr."""
+        return self.outputs[-1, O_CF_STD] / self.cf[-1], self.outputs[-1, O_CR_STD] / self.cr[-1]
+
+    def final_tire_bias(self) -> tuple[float, float]:
+        """The last relative bias of Cf and Cr a tire saturating at ekf.min_friction would cause."""
+        return self.outputs[-1, O_TIRE_BIAS_F], self.outputs[-1, O_TIRE_BIAS_R]
 
     def covered(self) -> tuple[np.ndarray, np.ndarray]:
         """Per epoch: Cf, and Cr, within +-2 sigma of the truth."""

@@ -42,6 +42,7 @@ SCENARIOS = {
                                         "steering": step_steering(math.radians(20.0), start=2.0, ramp=0.5)},
     "unconfigured 80 ms GNSS delay": {"gnss_delay": 0.08},
     "unconfigured 40 ms GNSS delay": {"gnss_delay": 0.04},
+    "wet field (mu 0.3, tanh tire)": {"tire": "saturating", "friction": 0.3},
 }
 
 

@@ -62,6 +62,8 @@ class FilterOptions:
     linear_range_check: bool = True  # hold the stiffness where the tire leaves its linear range
     max_slip_angle: float = 0.05  # rad: beyond it the tire is taken as nonlinear (stiffness held)
     max_lateral_acceleration: float = 2.0  # m/s^2: likewise
+    min_friction: float = 0.3  # lowest friction expected (wet field): the stiffness std holds the bias there; 0 off
+    saturation_correction: bool = False  # report Cf, Cr corrected by that bias (min_friction = the field's, if known)
     change_detection: bool = True  # the surface-change CUSUM on the innovations
     change_scale: float = 4.0  # innovation variance ratio the surface-change CUSUM tests for
     change_threshold: float = 12.0  # CUSUM alarm level (log-likelihood ratio)

@@ -219,6 +219,11 @@ SCHEMA: tuple[Param, ...] = (
            "nonlinear", 1.0e-4, 1.0),
     _float("ekf.max_lateral_acceleration", 2.0, "m/s^2", "lateral acceleration beyond which the tire counts as "
            "nonlinear", 0.01, 50.0),
+    _float("ekf.min_friction", 0.3, "", "friction coefficient of the most slippery surface expected (a wet "
+           "field ~0.3): the reported Cf, Cr std include the bias a linear tire model takes on a tire saturating "
+           "there (mu Fz tanh(C alpha / (mu Fz)), Fz the static load); 0: off", 0.0, 2.0),
+    _bool("ekf.saturation_correction", False, "report Cf, Cr corrected by that bias (first order): right when "
+          "ekf.min_friction is the friction of the field driven, too high by the bias on a grippier one"),
     _bool("ekf.change_detection", True, "CUSUM test of the innovations for a stiffness change (surface)"),
     _float("ekf.change_scale", 4.0, "", "innovation variance ratio the change test looks for", 1.01, 100.0),
     _float("ekf.change_threshold", 12.0, "", "CUSUM alarm level (log-likelihood ratio)", 1.0, 1000.0),

@@ -3,7 +3,10 @@
 * :func:`beyond_linear_range`: whether the slip angles (eq. 3) or the lateral acceleration have
   left the range where the linear tire of eq. 2 holds; the step then updates only the motion;
 * :func:`detect_change`: a CUSUM test on the normalised innovation squared for a change of the
-  innovation variance (a new surface); an alarm raises the stiffness random walk for a while.
+  innovation variance (a new surface); an alarm raises the stiffness random walk for a while;
+* :func:`propagate_tire_bias`: the bias the linear tire takes if the surface is as slippery as
+  ``ekf.min_friction`` (first order, through the filter's own F and K); the reported stiffness
+  standard deviations include it.
 """
 
 from __future__ import annotations
@@ -11,7 +14,10 @@ from __future__ import annotations
 import math
 
 from transplanter_ident.ekf.layout import (
+    G_K0,
+    G_K1,
     M_ADAPT_UNTIL,
+    M_BIAS,
     M_CUSUM,
     O_CHANGE,
     O_CUSUM,
@@ -25,8 +31,16 @@ from transplanter_ident.ekf.layout import (
     S_LINEAR_RANGE,
     S_MAX_LAT_ACC,
     S_MAX_SLIP,
+    S_MIN_FRICTION,
+    V_BIAS,
     VEH_LF,
     VEH_LR,
+    VEH_MASS,
+    W_F,
+    W_GAIN,
+    W_VEC,
+    X_R,
+    X_VY,
 )
 from transplanter_ident.jit import inline_kernel
 
@@ -85,3 +99,64 @@ def known_to(theta, variance, log_state):
     """
     std = math.sqrt(max(variance, 0.0))
     return std <= KNOWN_REL_STD if log_state else std <= KNOWN_REL_STD * abs(theta)
+
+
+#: m/s^2, for the static axle loads
+GRAVITY = 9.81
+
+
+@inline_kernel
+def saturation_deficit(settings, vehicle, slip, stiffness, front):
+    """ln(F / (C alpha)) of one tire whose force is mu Fz tanh(C alpha / (mu Fz)), mu = ``min_friction``.
+
+    A smooth saturating curve with the small-slip stiffness C and the friction limit mu Fz (Fz: the
+    static load of one tire of the axle). It is ~ -x^2 / 3 at the normalised slip x = C alpha / (mu Fz):
+    the linear tire overstates the force by 4 % at a third of the friction limit. 0 when mu <= 0 (off).
+    """
+    mu = settings[S_MIN_FRICTION]
+    if not mu > 0.0:
+        return 0.0
+    lf, lr = vehicle[VEH_LF], vehicle[VEH_LR]
+    load = 0.5 * vehicle[VEH_MASS] * GRAVITY * (lr if front else lf) / (lf + lr)
+    x = min(abs(stiffness * slip) / (mu * load), 20.0)
+    if x < 1.0e-4:
+        return -x * x / 3.0
+    return math.log(math.tanh(x) / x)
+
+
+@inline_kernel
+def propagate_tire_bias(memo, vehicle, settings, n, nd, h1, antenna_x, updated, slip_f, slip_r, cf, cr,
+                        log_state, ws):
+    """The estimate's first-order bias b = E[x_true - x] if the tires saturate at ``min_friction``.
+
+    Over an interval the true motion follows the stiffness C e^d (d = :func:`saturation_deficit` of
+    the interval's slip): the prediction misses F[:, theta] d (the filter's own Jacobian, ws[W_F]),
+    so b <- F b + F[:, theta] d; an update (gain K in ws[W_GAIN], zero rows where the step held
+    them) takes b <- (I - K H) b. With ``log_state`` theta = ln C, else theta = C (d C, to first
+    order). Called once the step is accepted; the parameter entries are the stiffness bias (ln C or N/rad).
+    """
+    d_f = saturation_deficit(settings, vehicle, slip_f, cf, True)
+    d_r = saturation_deficit(settings, vehicle, slip_r, cr, False)
+    if not log_state:
+        d_f, d_r = cf * d_f, cr * d_r
+    for i in range(n):
+        acc = memo[M_BIAS + i]
+        if i < nd:
+            acc = ws[W_F, i, nd] * d_f + ws[W_F, i, nd + 1] * d_r
+            for j in range(n):
+                acc += ws[W_F, i, j] * memo[M_BIAS + j]
+        ws[W_VEC, V_BIAS, i] = acc
+    hb0 = ws[W_VEC, V_BIAS, X_VY] + antenna_x * ws[W_VEC, V_BIAS, X_R]
+    hb1 = ws[W_VEC, V_BIAS, h1]
+    for i in range(n):
+        b = ws[W_VEC, V_BIAS, i]
+        if updated:
+            b -= ws[W_GAIN, G_K0, i] * hb0 + ws[W_GAIN, G_K1, i] * hb1
+        memo[M_BIAS + i] = b
+
+
+@inline_kernel
+def forget_motion_bias(memo, nd):
+    """The motion states taken from a measurement carry no bias of the model."""
+    for i in range(nd):
+        memo[M_BIAS + i] = 0.0

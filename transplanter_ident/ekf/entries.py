@@ -135,7 +135,8 @@ def ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steerin
     x : (n,)*           state [vy, r, (psi,) theta_f, theta_r, b], layout.X_*
     p : (n, n)*         state covariance P
     model : (3,)*       open-loop model output [vy, r, psi] (paper Figs. 6-7)
-    memo : (N_MEMO,)*   [t_prev, initialised, consecutive gated, CUSUM, adapting until, consecutive diverged], layout.M_*
+    memo : (N_MEMO,)*   [t_prev, initialised, consecutive gated, CUSUM, adapting until, consecutive diverged,
+                        saturation bias of each state (n)], layout.M_*
     vehicle : (4,)      [mass, lf, lr, iz], model.vehicle_array
     settings : (N_SETTINGS,)  options as numbers, layout.S_*
     q : (n,)            diag Q as a spectral density (per second; each interval adds q dt)

@@ -44,6 +44,8 @@ from transplanter_ident.ekf.layout import (
     O_S01,
     O_S11,
     O_STATUS,
+    O_TIRE_BIAS_F,
+    O_TIRE_BIAS_R,
     O_VY,
     O_VY_MODEL,
     PARAMETER_STATES,
@@ -65,6 +67,7 @@ from transplanter_ident.ekf.layout import (
     S_MAX_LAT_ACC,
     S_MAX_SLIP,
     S_METHOD,
+    S_MIN_FRICTION,
     S_MIN_SPEED,
     S_P0_OFFSET,
     S_P0_PSI,
@@ -73,6 +76,7 @@ from transplanter_ident.ekf.layout import (
     S_P0_THETA_R,
     S_P0_VY,
     S_R_FROM_COVARIANCE,
+    S_SATURATION_CORRECTION,
     X_OFFSET,
     X_PSI,
     X_THETA_F,
@@ -107,6 +111,11 @@ class Estimate:
     stiffness_correlation: float = 0.0  # of the two stiffness states (ln Cf, ln Cr in log mode)
     change_detected: bool = False  # the surface-change test fired at this epoch
     row: tuple[float, ...] = ()  # the whole kernel output row (layout.O_*)
+
+    @property
+    def tire_bias(self) -> tuple[float, float]:
+        """Relative bias of Cf, Cr on a tire saturating at ekf.min_friction (adaptation.py; held in the std)."""
+        return (self.row[O_TIRE_BIAS_F], self.row[O_TIRE_BIAS_R]) if len(self.row) > O_TIRE_BIAS_R else (0.0, 0.0)
 
     @classmethod
     def from_row(cls, t: float, row: np.ndarray) -> Estimate:
@@ -167,6 +176,8 @@ class FilterArrays:
         settings[S_ANTENNA_X] = config.vehicle.antenna_x
         settings[S_MAX_SLIP] = options.max_slip_angle
         settings[S_MAX_LAT_ACC] = options.max_lateral_acceleration
+        settings[S_MIN_FRICTION] = options.min_friction
+        settings[S_SATURATION_CORRECTION] = 1.0 if options.saturation_correction else 0.0
         settings[S_CUSUM_SCALE] = options.change_scale
         settings[S_CUSUM_THRESHOLD] = options.change_threshold
         settings[S_CUSUM_CAP] = 0.5 * options.change_threshold  # one outlier alone never raises an alarm

@@ -30,11 +30,18 @@ from __future__ import annotations
 
 import math
 
-from transplanter_ident.ekf.adaptation import beyond_linear_range, detect_change, known_to
+from transplanter_ident.ekf.adaptation import (
+    beyond_linear_range,
+    detect_change,
+    forget_motion_bias,
+    known_to,
+    propagate_tire_bias,
+)
 from transplanter_ident.ekf.layout import (
     EULER,
     HEADING_STATES,
     M_ADAPT_UNTIL,
+    M_BIAS,
     M_CUSUM,
     M_DIVERGED,
     M_GATED,
@@ -57,7 +64,10 @@ from transplanter_ident.ekf.layout import (
     O_S00,
     O_S01,
     O_S11,
+    O_SLIP_F,
+    O_SLIP_R,
     O_STATUS,
+    O_TIRE_BIAS_F,
     O_VY,
     O_VY_MODEL,
     S_ANTENNA_X,
@@ -73,6 +83,7 @@ from transplanter_ident.ekf.layout import (
     S_P0_PSI,
     S_P0_R,
     S_P0_VY,
+    S_SATURATION_CORRECTION,
     V_BACKUP_MODEL,
     V_BACKUP_X,
     V_NEW_MODEL,
@@ -149,14 +160,16 @@ def make_kernels(heading):
         return x[nf + k], 1.0
 
     @inline_kernel
-    def write_outputs(x, p, settings, status, r_model, vy_model, out):
+    def write_outputs(x, p, memo, settings, status, r_model, vy_model, out):
         out[O_STATUS] = status.value
         out[O_VY] = x[X_VY]
         out[O_R] = x[X_R]
-        for k in range(2):  # front, rear
+        for k in range(2):  # front, rear; the std holds the saturation bias (adaptation.propagate_tire_bias)
             c, dc = stiffness(x, settings, k)
-            out[O_CF + k] = c
-            out[O_CF_STD + k] = dc * math.sqrt(max(p[nf + k, nf + k], 0.0))
+            bias = memo[M_BIAS + nf + k]
+            out[O_CF + k] = c + dc * bias if settings[S_SATURATION_CORRECTION] > 0.5 else c
+            out[O_CF_STD + k] = dc * math.sqrt(max(p[nf + k, nf + k], 0.0) + bias * bias)
+            out[O_TIRE_BIAS_F + k] = dc * bias / c if c != 0.0 else 0.0
         out[O_OFFSET] = x[nb]
         out[O_OFFSET_STD] = math.sqrt(max(p[nb, nb], 0.0))
         denominator = math.sqrt(max(p[nf, nf], 0.0) * max(p[nr, nr], 0.0))
@@ -215,11 +228,12 @@ def make_kernels(heading):
     @inline_kernel
     def restart_motion(x, p, model, memo, settings, status, t, vy_antenna, psi, yaw_rate, out):
         reset_motion(x, p, model, settings, vy_antenna, psi, yaw_rate)
+        forget_motion_bias(memo, nd)
         memo[M_T_PREV] = t
         memo[M_INITIALISED] = 1.0
         memo[M_GATED] = 0.0
         memo[M_DIVERGED] = 0.0
-        write_outputs(x, p, settings, status, yaw_rate, x[X_VY], out)
+        write_outputs(x, p, memo, settings, status, yaw_rate, x[X_VY], out)
         return status
 
     recover = make_recovery(n, nd, MAX_VARIANCE, write_outputs, restart_motion)
@@ -242,11 +256,11 @@ def make_kernels(heading):
         # 1.
         if not (_finite(t) and _finite(speed) and _finite(steering) and _finite(steering_rate)
                 and _finite(vy_antenna) and _finite(psi) and _finite(yaw_rate)):
-            write_outputs(x, p, settings, StepStatus.REJECTED_INVALID, model[X_R], model[X_VY], out)
+            write_outputs(x, p, memo, settings, StepStatus.REJECTED_INVALID, model[X_R], model[X_VY], out)
             return StepStatus.REJECTED_INVALID
         stepped_back = t < memo[M_T_PREV] - settings[S_MAX_INTERVAL]  # a lasting clock step: start over below
         if memo[M_INITIALISED] > 0.5 and t <= memo[M_T_PREV] and not stepped_back:
-            write_outputs(x, p, settings, StepStatus.REJECTED_STAMP, model[X_R], model[X_VY], out)
+            write_outputs(x, p, memo, settings, StepStatus.REJECTED_STAMP, model[X_R], model[X_VY], out)
             return StepStatus.REJECTED_STAMP
         # 2.
         status = StepStatus.UPDATED
@@ -273,7 +287,8 @@ def make_kernels(heading):
 
         # the tire's range from the last motion estimate, once both stiffnesses are known (see adaptation.py)
         log_state = settings[S_LOG] > 0.5
-        nonlinear = (beyond_linear_range(vehicle, settings, speed, steering, x[nb], x[X_VY], x[X_R], out)
+        wheel = steering - 0.5 * dt * steering_rate  # at the interval's start, as x (the ramp of predict_n)
+        nonlinear = (beyond_linear_range(vehicle, settings, speed, wheel, x[nb], x[X_VY], x[X_R], out)
                      and known_to(x[nf], p[nf, nf], log_state) and known_to(x[nr], p[nr, nr], log_state))
 
         # 3.
@@ -316,9 +331,11 @@ def make_kernels(heading):
                                       psi, yaw_rate, out)
             status = StepStatus.GATED
             memo[M_GATED] += 1.0
+            updated = False
         else:
             # 6.
             memo[M_GATED] = 0.0
+            updated = True
             if nonlinear:
                 status = StepStatus.NONLINEAR
             joseph_update(x, p, e0, e1, s00, s01, s11, det, antenna_x, nonlinear, ws)
@@ -333,7 +350,10 @@ def make_kernels(heading):
             return recover(x, p, model, memo, settings, t, vy_antenna, psi, yaw_rate, cusum_before, ws, out)
         memo[M_T_PREV] = t
         memo[M_DIVERGED] = 0.0
-        write_outputs(x, p, settings, status, r_model, vy_model, out)
+        cf_now, cr_now = stiffness(x, settings, 0)[0], stiffness(x, settings, 1)[0]
+        propagate_tire_bias(memo, vehicle, settings, n, nd, h1, antenna_x, updated, out[O_SLIP_F], out[O_SLIP_R],
+                            cf_now, cr_now, log_state, ws)
+        write_outputs(x, p, memo, settings, status, r_model, vy_model, out)
         return status
 
     run_n, objective_n = make_sequence_kernels(step_n, heading)

@@ -36,18 +36,21 @@ S_ANTENNA_X, S_MAX_SLIP, S_MAX_LAT_ACC = 12, 13, 14
 S_CUSUM_SCALE, S_CUSUM_THRESHOLD, S_CUSUM_CAP, S_CHANGE_Q = 15, 16, 17, 18
 S_LINEAR_RANGE, S_CHANGE_DETECTION, S_CHANGE_HOLD, S_R_FROM_COVARIANCE = 19, 20, 21, 22
 S_P0_THETA_F, S_P0_THETA_R, S_P0_OFFSET = 23, 24, 25  # the parameter states' P0 (recovery.py re-initialises to it)
-N_SETTINGS = 26
+S_MIN_FRICTION, S_SATURATION_CORRECTION = 26, 27  # adaptation.propagate_tire_bias
+N_SETTINGS = 28
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6
 O_VY_MODEL, O_R_MODEL, O_E0, O_E1, O_S00, O_S01, O_S11, O_NIS = 7, 8, 9, 10, 11, 12, 13, 14
 O_OFFSET, O_OFFSET_STD, O_CORRELATION, O_CHANGE, O_CUSUM = 15, 16, 17, 18, 19
 O_SLIP_F, O_SLIP_R, O_LAT_ACC, O_DT = 20, 21, 22, 23
-N_OUTPUTS = 24
+O_TIRE_BIAS_F, O_TIRE_BIAS_R = 24, 25  # relative bias of Cf, Cr a saturating tire at min_friction would cause
+N_OUTPUTS = 26
 
 # memo vector
 M_T_PREV, M_INITIALISED, M_GATED, M_CUSUM, M_ADAPT_UNTIL, M_DIVERGED = 0, 1, 2, 3, 4, 5
-N_MEMO = 6
+M_BIAS = 6  # memo[M_BIAS + i]: the first-order bias of state i from the tire's saturation (adaptation.py)
+N_MEMO = 12
 
 # the open-loop model's state [vy, r, psi]
 N_MODEL = 3
@@ -82,7 +85,7 @@ W_F, W_TMP, W_GAIN, W_BACKUP_P, W_VEC = 12, 13, 14, 15, 16
 WORK_SLOTS = 17
 WORK_SIZE = 6
 # rows of ws[W_VEC]
-V_BACKUP_X, V_BACKUP_MODEL, V_NEW_X, V_NEW_MODEL = 0, 1, 2, 3
+V_BACKUP_X, V_BACKUP_MODEL, V_NEW_X, V_NEW_MODEL, V_BIAS = 0, 1, 2, 3, 4
 # rows of ws[W_GAIN]
 G_K0, G_K1, G_HP0, G_HP1 = 0, 1, 2, 3
 

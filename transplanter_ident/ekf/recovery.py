@@ -91,7 +91,7 @@ def make_recovery(n, nd, max_variance, write_outputs, restart_motion):  # noqa: 
         memo[M_DIVERGED] += 1.0
         out[:] = 0.0
         if memo[M_DIVERGED] < MAX_DIVERGED and bounded(x, p, 0):
-            write_outputs(x, p, settings, StepStatus.DIVERGED, model[X_R], model[X_VY], out)
+            write_outputs(x, p, memo, settings, StepStatus.DIVERGED, model[X_R], model[X_VY], out)
             return StepStatus.DIVERGED
         if parameters_diverged or not bounded(x, p, nf):
             reset_parameters(x, p, settings)

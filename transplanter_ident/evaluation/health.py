@@ -358,7 +358,8 @@ class HealthMonitor:
                   ("updates", str(f.updates)), ("correlation", f"{est.stiffness_correlation:.5f}"),
                   ("scale_rel_std", f"{known.scale_std:.4g}"), ("ratio_rel_std", f"{known.ratio_std:.4g}"),
                   ("weak_direction", f"{known.weak_direction[0]:+.3f} {known.weak_direction[1]:+.3f}"),
-                  ("weak_rel_std", f"{known.weak_std:.4g}"), ("identifiability", known.describe()))
+                  ("weak_rel_std", f"{known.weak_std:.4g}"), ("identifiability", known.describe()),
+                  ("tire_saturation_bias", "{:.4f} {:.4f}".format(*est.tire_bias)))
         if converged:
             return HealthReport(name, OK, f"converged: Cf {cf:.0f} +- {100 * rel_f:.1f} %, "
                                 f"Cr {cr:.0f} +- {100 * rel_r:.1f} %", values)
