@@ -55,7 +55,7 @@ from transplanter_ident.tuning.tune import (
     tuned_parameters,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]  # the checkout: its bags/ (an installed copy has none: they are simulated)
 TUNE_BAG = "step20-ccw"
 REPLAY_BAGS = ("step20-ccw", "step30-cw")
 OBJECTIVE_BAG = "sine"
