@@ -258,3 +258,12 @@ def test_console_script_bad_flag_subprocess(tmp_path) -> None:  # noqa: ANN001
                             env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=120)
     assert result.returncode == 2
     assert result.stderr.strip().count("\n") == 0 and "--particles" in result.stderr
+
+
+def test_the_demo_reads_the_checkouts_bags_and_parameters() -> None:
+    """`make demo` runs on bags/ and config/estimator.yaml of this checkout (not simulated stand-ins)."""
+    from transplanter_ident.cli import demo
+
+    assert (demo.ROOT / "bags" / demo.TUNE_BAG / "metadata.yaml").is_file()
+    files, _ = demo.base_parameters()
+    assert files == [demo.ROOT / "config" / "estimator.yaml"]
