@@ -140,14 +140,14 @@ class IdentifiabilityGuard:
 
     def step(self, row: np.ndarray, out: np.ndarray) -> None:
         """One epoch (kernel input row, its output row): the node's path; ``out`` is published in place."""
-        if not self.enabled or not _taken(out):
+        if not self.enabled or not _taken(out[None, :])[0]:
             return
         options = self._config.options
         t = float(row[E_T])
         self._rows.append(np.array(row, dtype=np.float64))
         while self._rows[0][E_T] < t - options.identifiability_memory:
             self._rows.popleft()
-        if t >= self._next and _turning(row, out, options.identifiability_min_steering):
+        if t >= self._next and _turning(row[None, :], out[None, :], options.identifiability_min_steering)[0]:
             self._evaluate(np.array(self._rows), out, t)
         out[:] = _published(out[None, :], self._weak, self._prior)[0]
 
@@ -156,17 +156,18 @@ class IdentifiabilityGuard:
         if not self.enabled or len(rows) == 0:
             return
         options = self._config.options
-        taken = np.nonzero([_taken(o) for o in outputs])[0]
+        taken = np.nonzero(_taken(outputs))[0]
         times = rows[taken, E_T]
+        turning = _turning(rows[taken], outputs[taken], options.identifiability_min_steering)
         start = 0
-        for position, k in enumerate(taken):
-            if times[position] < self._next or not _turning(rows[k], outputs[k], options.identifiability_min_steering):
+        for position in np.nonzero(turning)[0]:  # the bound is (re-)evaluated only at turning epochs
+            if times[position] < self._next:
                 continue
             low = max(int(np.searchsorted(times, times[position] - options.identifiability_memory, "left")),
                       position + 1 - options.identifiability_max_epochs)
             if position > start:  # publish the epochs since the last evaluation with its directions
                 outputs[taken[start:position]] = _published(outputs[taken[start:position]], self._weak, self._prior)
-            self._evaluate(rows[taken[low:position + 1]], outputs[k], float(times[position]))
+            self._evaluate(rows[taken[low:position + 1]], outputs[taken[position]], float(times[position]))
             start = position
         outputs[taken[start:]] = _published(outputs[taken[start:]], self._weak, self._prior)
 
@@ -180,14 +181,15 @@ class IdentifiabilityGuard:
         self._next = t + options.identifiability_period * (RELAXED_PERIODS if firm else 1)
 
 
-def _turning(row: np.ndarray, out: np.ndarray, min_steering: float) -> bool:
-    """Whether an epoch can inform the stiffness: the wheels are turned (straight driving adds ~nothing)."""
-    return abs(row[E_STEERING] - out[O_OFFSET]) >= min_steering
+def _turning(rows: np.ndarray, outputs: np.ndarray, min_steering: float) -> np.ndarray:
+    """Per epoch: whether it can inform the stiffness, the wheels turned (straight driving adds ~nothing)."""
+    return np.abs(rows[:, E_STEERING] - outputs[:, O_OFFSET]) >= min_steering
 
 
-def _taken(out: np.ndarray) -> bool:
-    """Whether the filter took the epoch of this output row (and it has a stiffness)."""
-    return int(out[O_STATUS]) not in SKIPPED and out[O_CF] > 0.0 and out[O_CR] > 0.0
+def _taken(outputs: np.ndarray) -> np.ndarray:
+    """Per output row: whether the filter took its epoch (and it has a stiffness)."""
+    skipped = np.isin(outputs[:, O_STATUS].astype(int), [int(status) for status in SKIPPED])
+    return ~skipped & (outputs[:, O_CF] > 0.0) & (outputs[:, O_CR] > 0.0)
 
 
 def _published(rows: np.ndarray, weak: np.ndarray, prior: np.ndarray) -> np.ndarray:

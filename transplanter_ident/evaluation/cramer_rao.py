@@ -62,15 +62,18 @@ def cramer_rao_bound(config: EstimatorConfig, epochs: EpochArrays, cornering_sti
         return None
     theta = np.array([math.log(cornering_stiffness[0]), math.log(cornering_stiffness[1]), steering_offset])
     information, used = window_information(config, kernel_input(epochs), theta, segment)
-    if used == 0 or not np.all(np.isfinite(information)):
+    return bound_from_information(information, options.estimate_steering_offset, used) if used > 0 else None
+
+
+def bound_from_information(information: np.ndarray, offset_estimated: bool, epochs: int) -> CramerRaoBound | None:
+    """The bound of (ln Cf, ln Cr) from the (3, 3) information of (ln Cf, ln Cr, b); None while singular."""
+    pinned = stiffness_information(information, offset_estimated)
+    if not np.all(np.isfinite(pinned)) or np.linalg.det(pinned) <= 0.0:
         return None
-    try:
-        covariance = np.linalg.inv(stiffness_information(information, options.estimate_steering_offset))
-    except np.linalg.LinAlgError:
-        return None
+    covariance = np.linalg.inv(pinned)
     if not (np.all(np.isfinite(covariance)) and covariance[0, 0] > 0.0 and covariance[1, 1] > 0.0):
         return None
-    return CramerRaoBound(covariance, int(used))
+    return CramerRaoBound(covariance, int(epochs))
 
 
 def final_bound_line(config: EstimatorConfig, epochs: EpochArrays, final_row: np.ndarray) -> str:

@@ -14,21 +14,9 @@ from __future__ import annotations
 import numpy as np
 
 from transplanter_ident.config.parameters import FilterOptions
-from transplanter_ident.ekf.identifiability import stiffness_information
 from transplanter_ident.ekf.joint_ekf import Estimate
-from transplanter_ident.evaluation.cramer_rao import CramerRaoBound
+from transplanter_ident.evaluation.cramer_rao import bound_from_information
 from transplanter_ident.evaluation.health import OK, WARN, HealthReport
-
-
-def recent_bound(information: np.ndarray, options: FilterOptions) -> CramerRaoBound | None:
-    """The Cramér-Rao bound of (ln Cf, ln Cr) from the recent information (3, 3); None while singular."""
-    pinned = stiffness_information(information, options.estimate_steering_offset)
-    if not np.all(np.isfinite(pinned)) or np.linalg.det(pinned) <= 0.0:
-        return None
-    covariance = np.linalg.inv(pinned)
-    if not (covariance[0, 0] > 0.0 and covariance[1, 1] > 0.0):
-        return None
-    return CramerRaoBound(covariance, 0)
 
 
 def identifiability_report(name: str, information: np.ndarray, estimate: Estimate | None,
@@ -41,7 +29,7 @@ def identifiability_report(name: str, information: np.ndarray, estimate: Estimat
     if options.measurement != "heading" or not options.identifiability_check:
         why = "yaw_rate mode" if options.measurement != "heading" else "ekf.identifiability_check is false"
         return HealthReport(title, OK, f"not computed ({why})", values)
-    bound = recent_bound(information, options)
+    bound = bound_from_information(information, options.estimate_steering_offset, 0)
     if bound is None or estimate is None:
         return HealthReport(title, WARN, "weakly identifiable: no informative epoch yet (the published band is "
                             "the prior's)", values)
