@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import math
+import os
+import time
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -121,6 +125,40 @@ def test_tuning_on_a_ready_pool_equals_serial_tuning(sim_epochs, algorithm: str)
     assert parallel.result.fitness == serial.result.fitness
     np.testing.assert_array_equal(parallel.result.position, serial.result.position)
     assert [h.best_fitness for h in parallel.result.history] == [h.best_fitness for h in serial.result.history]
+
+
+def _worker_warm_up(folder: Path, wait_for_host: Callable[[], bool]) -> None:
+    """A worker's warm-up that records whether the host's warm-up had finished when the wait returned."""
+    (folder / f"waiting-{os.getpid()}").touch()
+    released = wait_for_host()
+    (folder / f"worker-{os.getpid()}").write_text(f"{released} {(folder / 'host').exists()}")
+
+
+def _host_warm_up(folder: Path) -> None:
+    """The host's warm-up: done only once a worker is waiting for it (so a worker that did not wait is caught)."""
+    deadline = time.monotonic() + 60.0
+    while not list(folder.glob("waiting-*")) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    (folder / "host").touch()
+
+
+@pytest.mark.parametrize("host", [True, False])
+def test_workers_wait_for_the_hosts_warm_up(tmp_path: Path, host: bool) -> None:
+    """The workers' warm-up goes on after this process's (the compiled step is shared through the disk cache).
+
+    Without a host warm-up the workers are released at the first parallel call, not held until the timeout.
+    """
+    backend = ProcessBackend(3, warm_up=partial(_worker_warm_up, tmp_path),
+                             host_warm_up=partial(_host_warm_up, tmp_path) if host else None)
+    try:
+        if host:
+            backend.start()
+        assert backend.map(pow, [(i, 2) for i in range(8)]) == [i * i for i in range(8)]
+        backend.wait_ready()
+    finally:
+        backend.close()
+    records = sorted(path.read_text() for path in tmp_path.glob("worker-*"))
+    assert records == [f"True {host}"] * 2
 
 
 def test_process_backend_runs_calls_here_and_on_workers_in_order() -> None:

@@ -322,6 +322,7 @@ def test_batch_objective_equals_the_serial_filter(sine_epochs, options: FilterOp
     batch = problem(candidates)
     serial = [ekf.sequence_objective(problem.tuned_config(c), sine_epochs, objective) for c in candidates]
     np.testing.assert_array_equal(batch, serial)
+    np.testing.assert_array_equal(problem.evaluate_serially(candidates), batch)
     assert np.all(np.isfinite(batch))
     assert problem.evaluate_noise(base.noise) == ekf.sequence_objective(base, sine_epochs, objective)
 

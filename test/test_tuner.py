@@ -15,6 +15,7 @@ from transplanter_ident.bags.samples import ensure_bag
 from transplanter_ident.config.params_file import EstimatorParams, load_params, read_params_file
 from transplanter_ident.ekf.joint_ekf import run_sequence
 from transplanter_ident.evaluation.metrics import stiffness_error
+from transplanter_ident.tuning.tune import compare
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULTS = ROOT / "config" / "estimator.yaml"
@@ -77,7 +78,7 @@ def test_tuned_objective_not_worse_and_table2_printed(sample_bags) -> None:  # n
     chaotic = sum(record.chaotic_particles for record in outcome.result.history)
     assert outcome.result.evaluations >= 20 * 41 and (outcome.result.evaluations > 20 * 41) == (chaotic > 0)
     assert outcome.problem.evaluate_noise(outcome.tuned_config.noise) == pytest.approx(outcome.result.fitness)
-    comparison = tuner.compare(outcome, epochs)
+    comparison = compare(outcome, epochs)
     for row in (comparison.start, comparison.tuned):
         assert row.epochs > 400 and all(math.isfinite(v) for v in (row.mean_error_vy, row.mean_error_r))
     text = comparison.format("Table 2")

@@ -46,6 +46,7 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from transplanter_ident.cli.util import CliError, cli_main
+from transplanter_ident.config.parameters import EstimatorConfig
 from transplanter_ident.config.params_file import EstimatorParams, load_params
 from transplanter_ident.config.params_writer import write_params_yaml
 from transplanter_ident.epochs.epoch import EpochArrays
@@ -58,11 +59,19 @@ from transplanter_ident.tuning.parallel import (
     SerialBackend,
     default_jobs,
     open_backend,
+    warm_kernels,
     warm_worker,
 )
 from transplanter_ident.tuning.problem import OBJECTIVES
 from transplanter_ident.tuning.pso import IterationRecord
-from transplanter_ident.tuning.tune import ALGORITHMS, compare, header_comment, tune_problem, tuned_parameters
+from transplanter_ident.tuning.tune import (
+    ALGORITHMS,
+    Comparison,
+    compare_configs,
+    header_comment,
+    tune_problem,
+    tuned_parameters,
+)
 from transplanter_ident.tuning.tune import tune as tune  # one bag, in-process (tests, benchmarks)
 
 MIN_EPOCHS = 50
@@ -232,10 +241,11 @@ def _run(args: argparse.Namespace) -> int:
         require_pyplot()  # fail before the search, not after it
     params = load_parameters(args.params_file)
     jobs = args.jobs if args.jobs is not None else default_jobs()
-    local = SerialBackend() if jobs <= 1 else ProcessBackend(jobs, warm_up=partial(warm_worker, params.config))
+    local = SerialBackend() if jobs <= 1 else ProcessBackend(jobs, warm_up=partial(warm_worker, params.config),
+                                                             host_warm_up=partial(warm_kernels, params.config))
     remote = open_backend(dask_address=args.dask) if args.dask else local
     if isinstance(remote, ProcessBackend):
-        remote.start()  # the workers load the kernels while the bags are read here
+        remote.start()  # the workers start; this process loads (or compiles) the objective, then reads the bags
     try:
         return _tune_bags(args, params, local, remote)
     finally:
@@ -270,7 +280,10 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
                            seed=args.seed, on_iteration=progress_printer(args.iterations))
     check_finite(outcome.result.fitness, outcome.result.evaluations, ", ".join(args.bags))
     result = outcome.result
-    comparisons = [compare(outcome, bag_epochs) for bag_epochs in epochs]
+    label = f"{outcome.result.algorithm.upper()}-EKF (tuned)"
+    summaries = local.map(summarize_bag, [(outcome.start_config, outcome.tuned_config, bag_epochs, label)
+                                          for bag_epochs in epochs])
+    comparisons = [comparison for comparison, _ in summaries]
     holdout = None
     if len(args.bags) > 1 and not args.no_leave_one_out:
         def tune_fold(fold: MultiBagProblem, seed: int) -> Any:
@@ -297,9 +310,9 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
         write_params_yaml(args.output, flat, header)
     print(f"{args.algorithm}: {args.objective} {outcome.start_fitness:.6g} -> {result.fitness:.6g} "
           f"({result.evaluations} evaluations, {outcome.seconds:.1f} s, seed {outcome.seed}); wrote {args.output}")
-    for bag, comparison, bag_epochs in zip(args.bags, comparisons, epochs, strict=True):
+    for bag, (comparison, bound) in zip(args.bags, summaries, strict=True):
         print(comparison.format(f"Table 2 on {bag}"))
-        print(f"  tuned Q/R, {final_bound_line(outcome.tuned_config, bag_epochs, comparison.tuned_outputs[-1])}")
+        print(f"  tuned Q/R, {bound}")
     if delay is not None:
         print(f"estimated {delay.format(args.objective)}")
     if holdout is not None:
@@ -307,6 +320,13 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
     if args.report:
         print(f"report: {len(written)} files in {args.report}")
     return 0
+
+
+def summarize_bag(start: EstimatorConfig, tuned: EstimatorConfig, epochs: EpochArrays,
+                  label: str) -> tuple[Comparison, str]:
+    """Table 2 on one bag (the filter with the start and the tuned Q/R) and its Cramér-Rao line (a task)."""
+    comparison = compare_configs(start, tuned, epochs, label)
+    return comparison, final_bound_line(tuned, epochs, comparison.tuned_outputs[-1])
 
 
 def check_finite(fitness: float, evaluations: int, bag: str) -> None:

@@ -2,7 +2,9 @@
 
 numba caches a function on disk only when it is defined at module level with its own source,
 so each size has its own small entry here, calling the closures that :mod:`.kernels` makes for
-that size. :data:`KERNELS` maps the state size to them; :func:`ekf_step`, :func:`run_kernel`,
+that size. The run and objective loops (:mod:`.sequence`) call the step's entry, so the step is
+compiled once and, from numba's disk cache, shared by every process (the tuner's workers).
+:data:`KERNELS` maps the state size to them; :func:`ekf_step`, :func:`run_kernel`,
 :func:`objective_kernel` and :func:`predict` pick the size from the state vector.
 """
 
@@ -23,10 +25,11 @@ from transplanter_ident.ekf.layout import (
     WORK_SLOTS,
     YAW_RATE_STATES,
 )
+from transplanter_ident.ekf.sequence import make_sequence_kernels
 from transplanter_ident.jit import entry_kernel
 
-_predict_yaw_rate, _step_yaw_rate, _run_yaw_rate, _objective_yaw_rate = make_kernels(heading=False)
-_predict_heading, _step_heading, _run_heading, _objective_heading = make_kernels(heading=True)
+_predict_yaw_rate, _step_yaw_rate = make_kernels(heading=False)
+_predict_heading, _step_heading = make_kernels(heading=True)
 
 
 
@@ -40,18 +43,24 @@ def _predict_heading_entry(x, model, vehicle, settings, dt, speed, steering, ste
     _predict_heading(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
 
 
-@entry_kernel
+@entry_kernel(runtime=False)
 def _step_yaw_rate_entry(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,  # noqa: ANN001, ANN202
             steering_rate, vy, psi, yaw_rate, ws, out):
     return _step_yaw_rate(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering, steering_rate,
                           vy, psi, yaw_rate, ws, out)
 
 
-@entry_kernel
+@entry_kernel(runtime=False)
 def _step_heading_entry(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,  # noqa: ANN001, ANN202
             steering_rate, vy, psi, yaw_rate, ws, out):
     return _step_heading(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering, steering_rate,
                          vy, psi, yaw_rate, ws, out)
+
+
+# The loops call the step's own cached entry: the step is compiled once, and a process that finds
+# it in numba's disk cache (one compiled by another process) only links it.
+_run_yaw_rate, _objective_yaw_rate = make_sequence_kernels(_step_yaw_rate_entry, heading=False)
+_run_heading, _objective_heading = make_sequence_kernels(_step_heading_entry, heading=True)
 
 
 @entry_kernel

@@ -104,10 +104,10 @@ from transplanter_ident.ekf.layout import (
 )
 from transplanter_ident.ekf.model import discretize_heading, discretize_yaw_rate
 from transplanter_ident.ekf.recovery import make_recovery
-from transplanter_ident.ekf.sequence import heading_error_terms, make_sequence_kernels
+from transplanter_ident.ekf.sequence import heading_error_terms
 from transplanter_ident.ekf.update import make_update
 from transplanter_ident.epochs.frames import wrap_angle
-from transplanter_ident.jit import inline_kernel, sized_kernel
+from transplanter_ident.jit import called_kernel, inline_kernel, sized_kernel
 
 #: a state variance beyond this is divergence (ln C variance 1e12 means nothing is known)
 MAX_VARIANCE = 1.0e12
@@ -159,7 +159,7 @@ def make_kernels(heading):
             return c, c
         return x[nf + k], 1.0
 
-    @inline_kernel
+    @called_kernel
     def write_outputs(x, p, memo, settings, status, r_model, vy_model, out):
         out[O_STATUS] = status.value
         out[O_VY] = x[X_VY]
@@ -225,7 +225,7 @@ def make_kernels(heading):
                     return False
         return _finite(r_model) and _finite(vy_model) and _finite(nis)
 
-    @inline_kernel
+    @called_kernel
     def restart_motion(x, p, model, memo, settings, status, t, vy_antenna, psi, yaw_rate, out):
         reset_motion(x, p, model, settings, vy_antenna, psi, yaw_rate)
         forget_motion_bias(memo, nd)
@@ -356,5 +356,4 @@ def make_kernels(heading):
         write_outputs(x, p, memo, settings, status, r_model, vy_model, out)
         return status
 
-    run_n, objective_n = make_sequence_kernels(step_n, heading)
-    return predict_n, step_n, run_n, objective_n
+    return predict_n, step_n

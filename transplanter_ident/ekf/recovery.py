@@ -37,7 +37,7 @@ from transplanter_ident.ekf.layout import (
     X_VY,
     StepStatus,
 )
-from transplanter_ident.jit import inline_kernel
+from transplanter_ident.jit import called_kernel, inline_kernel
 
 #: consecutive diverged steps after which the filter re-initialises
 MAX_DIVERGED = 5
@@ -77,7 +77,7 @@ def make_recovery(n, nd, max_variance, write_outputs, restart_motion):  # noqa: 
         if not math.isfinite(x[nb]):
             x[nb] = 0.0
 
-    @inline_kernel
+    @called_kernel
     def recover(x, p, model, memo, settings, t, vy_antenna, psi, yaw_rate, cusum_before, ws, out):
         """Roll the step back (DIVERGED), or re-initialise when the divergence lasts (RESTARTED)."""
         parameters_diverged = not bounded(x, p, nf)

@@ -8,21 +8,21 @@ A *backend* runs two kinds of work, always returning results in the order asked:
   contiguous chunks, about four per parallel slot in proportion to the bag's epochs, and the
   chunks run as independent tasks, largest first.
 
-Every candidate's value comes from the same compiled kernel (``TuningProblem``'s batch
-objective), which runs each candidate on its own copies of the data: a value does not depend
-on which chunk, process or machine computed it. So the tuning result for a seed is the same,
-bit for bit, whatever the number of jobs or the cluster (the bags are summed in a fixed order
-by the caller).
+Every candidate's value comes from the same compiled kernel (``TuningProblem.evaluate_serially``:
+the sequence objective, one candidate after another in the task's thread), which runs each
+candidate on its own copies of the data: a value does not depend on which chunk, process or
+machine computed it. So the tuning result for a seed is the same, bit for bit, whatever the
+number of jobs or the cluster (the bags are summed in a fixed order by the caller).
 
-* :class:`SerialBackend` (``--jobs 1``): in this process, on one numba thread;
+* :class:`SerialBackend` (``--jobs 1``): in this process;
 * :class:`ProcessBackend` (``--jobs N``): this process and N - 1 worker processes of a
   ``concurrent.futures.ProcessPoolExecutor`` with the ``forkserver`` start method (``spawn``
-  where there is none), one numba thread each, the next task going to whoever is free; the
-  workers start on first use or by :meth:`ProcessBackend.start`. Each worker loads the
-  compiled kernels from numba's disk cache as it starts (``warm_up``, :func:`warm_kernels`). A task carries its bag's epochs (56 bytes per epoch), which costs far less than
-  filtering them;
+  where there is none), the next task going to whoever is free; the workers start on first
+  use or by :meth:`ProcessBackend.start`. Each worker loads the compiled kernels from numba's
+  disk cache as it starts (``warm_up``, :func:`warm_kernels`). A task carries its bag's epochs
+  (56 bytes per epoch), which costs far less than filtering them;
 * :class:`DaskBackend` (``--dask ADDRESS``): a ``dask.distributed`` cluster; each bag is
-  scattered to the workers once, and chunks are submitted as tasks (one numba thread each).
+  scattered to the workers once, and chunks are submitted as tasks.
 """
 
 from __future__ import annotations
@@ -49,6 +49,8 @@ from transplanter_ident.tuning.problem import TuningProblem
 CHUNKS_PER_SLOT = 4
 #: tasks a pool worker holds at once (one running, one queued)
 WORKER_QUEUE = 2
+#: seconds a starting worker waits for this process's warm-up before going on without it
+HOST_WARM_UP_TIMEOUT = 120.0
 #: seconds to wait for a Dask scheduler
 DASK_CONNECT_TIMEOUT = 20.0
 
@@ -61,13 +63,6 @@ def default_jobs() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _single_thread() -> None:
-    """Compiled kernels in this thread use one numba thread (a worker is one slot)."""
-    import numba
-
-    numba.set_num_threads(1)
-
-
 def _still_epochs() -> EpochArrays:
     """Three epochs of straight driving at 1 m/s: enough to run (so load or compile) a kernel."""
     return EpochArrays([Epoch(t=0.2 * i, longitudinal_velocity=1.0, lateral_velocity=0.0, heading=0.0, yaw_rate=0.0,
@@ -75,17 +70,21 @@ def _still_epochs() -> EpochArrays:
 
 
 def warm_kernels(config: EstimatorConfig) -> None:
-    """Load (or compile) the batch objective for ``config``'s state size, on three still epochs."""
+    """Load (or compile) the sequence objective for ``config``'s state size, on three still epochs."""
     problem = TuningProblem.from_epochs(config, _still_epochs(), "nll")
-    problem(problem.start[None, :])
+    problem.evaluate_serially(problem.start[None, :])
 
 
-def warm_worker(config: EstimatorConfig) -> None:
-    """A worker's start: what this process runs after the search (Table 2, the bound), then the objective.
+def warm_worker(config: EstimatorConfig, wait_for_host: Callable[[], None]) -> None:
+    """A worker's start: the Cramér-Rao kernel, then the filter run of Table 2 and the objective.
 
-    This process compiles the objective meanwhile; the worker's kernels reach it through numba's disk
-    cache, so the compiles run on both cores instead of one after the other.
+    On a cold start the host compiles the step and the objective meanwhile (``host_warm_up`` of
+    :class:`ProcessBackend`). The worker compiles the bound's kernel, which does not use the
+    step, then waits for the host and finds the step and the objective in numba's disk cache:
+    the step, most of the compile time, is compiled once, and the compiles run on both cores.
     """
+    cramer_rao_bound(config, _still_epochs(), config.noise.initial_stiffness, config.vehicle.steering_offset)
+    wait_for_host()
     warm_replay_kernels(config)
     warm_kernels(config)
 
@@ -97,11 +96,10 @@ def warm_replay_kernels(config: EstimatorConfig) -> None:
     run_sequence(config, still)
 
 
-def _start_worker(warm_up: Callable[[], None] | None) -> None:
-    """Pool initializer: one numba thread, then the optional warm-up (loading the kernels)."""
-    _single_thread()
+def _start_worker(warm_up: Callable[[Callable[[], None]], None] | None, host_ready: Any) -> None:
+    """Pool initializer: the optional warm-up (loading the kernels), given a wait for the host's."""
     if warm_up is not None:
-        warm_up()
+        warm_up(lambda: host_ready.wait(HOST_WARM_UP_TIMEOUT))
 
 
 def _ready() -> None:
@@ -109,9 +107,8 @@ def _ready() -> None:
 
 
 def evaluate_chunk(problem: TuningProblem, positions: np.ndarray) -> np.ndarray:
-    """The objective of ``positions`` (m, D) on one bag, on one numba thread (a worker task)."""
-    _single_thread()
-    return np.asarray(problem(positions), dtype=np.float64)
+    """The objective of ``positions`` (m, D) on one bag, in this thread (a task of one slot)."""
+    return problem.evaluate_serially(positions)
 
 
 def plan_chunks(sizes: Sequence[int], candidates: int, slots: int) -> list[tuple[int, int, int]]:
@@ -166,14 +163,8 @@ class SerialBackend:
         return [fn(*item) for item in items]
 
     def evaluate(self, problems: Sequence[TuningProblem], positions: np.ndarray) -> np.ndarray:
-        """One call per bag, here, on one numba thread (the caller's thread count is restored)."""
-        import numba
-
-        previous = numba.get_num_threads()
-        try:
-            return np.vstack([evaluate_chunk(p, positions) for p in problems]) if problems else np.empty((0, 0))
-        finally:
-            numba.set_num_threads(previous)
+        """One call per bag, here."""
+        return np.vstack([evaluate_chunk(p, positions) for p in problems]) if problems else np.empty((0, 0))
 
     def close(self) -> None:
         """Nothing to release."""
@@ -195,11 +186,16 @@ class ProcessBackend:
     4.3 s, 2 workers with this process waiting 4.7-5.2 s, serial 6.6 s).
     """
 
-    def __init__(self, jobs: int, warm_up: Callable[[], None] | None = None) -> None:
+    def __init__(self, jobs: int, warm_up: Callable[[Callable[[], None]], None] | None = None,
+                 host_warm_up: Callable[[], None] | None = None) -> None:
         if jobs < 1:
             raise ValueError(f"jobs must be >= 1, got {jobs}")
         self.jobs = jobs
-        self.warm_up = warm_up  # run once in each worker as it starts (e.g. :func:`warm_kernels`)
+        # run once in each worker as it starts (e.g. :func:`warm_worker`), given a wait for host_warm_up
+        self.warm_up = warm_up
+        # run once here before the workers get their first call (e.g. :func:`warm_kernels`)
+        self.host_warm_up = host_warm_up
+        self._host_ready = _pool_context().Event()
         self._pool: Executor | None = None
         self._boot: list[Future] = []  # one no-op per worker, done once the workers are up
 
@@ -211,14 +207,24 @@ class ProcessBackend:
     def _executor(self) -> Executor | None:
         if self._pool is None and self.jobs > 1:
             self._pool = ProcessPoolExecutor(self.jobs - 1, mp_context=_pool_context(), initializer=_start_worker,
-                                             initargs=(self.warm_up,))
+                                             initargs=(self.warm_up, self._host_ready))
         return self._pool
 
     def start(self) -> None:
-        """Start every worker now, without waiting (they get ready while the caller goes on)."""
+        """Start every worker now, then ``host_warm_up`` here (the workers get ready while the caller goes on)."""
         pool = self._executor()
         if pool is not None and not self._boot:
             self._boot = [pool.submit(_ready) for _ in range(self.jobs - 1)]
+            self._warm_host()
+
+    def _warm_host(self) -> None:
+        """``host_warm_up`` here, once, then let the workers' warm-ups go on."""
+        if not self._host_ready.is_set():
+            try:
+                if self.host_warm_up is not None:
+                    self.host_warm_up()
+            finally:
+                self._host_ready.set()
 
     def ready(self) -> bool:
         """Whether every worker has started (and warmed up)."""
@@ -244,6 +250,8 @@ class ProcessBackend:
         handed_out: list[tuple[int, Future]] = []
         reserved = [0]  # calls taken for a worker (appended to handed_out right after submitting)
         pool = self._executor() if len(calls) > 1 else None
+        if pool is not None:
+            self._warm_host()
         if pool is not None and not wait_for_workers:
             self.start()
             pool = pool if self.ready() else None
@@ -294,17 +302,11 @@ class ProcessBackend:
         return self._run([(fn, tuple(item)) for item in items])
 
     def evaluate(self, problems: Sequence[TuningProblem], positions: np.ndarray) -> np.ndarray:
-        """Chunks of every bag on the workers and here (this process on one numba thread, then restored)."""
-        import numba
-
+        """Chunks of every bag on the workers and here."""
         positions = np.ascontiguousarray(positions, dtype=np.float64)
         tasks = plan_chunks([len(p.kernel_input) for p in problems], len(positions), self.slots)
-        previous = numba.get_num_threads()
-        try:
-            results = self._run([(evaluate_chunk, (problems[bag], positions[a:b])) for bag, a, b in tasks],
-                                wait_for_workers=False)
-        finally:
-            numba.set_num_threads(previous)
+        results = self._run([(evaluate_chunk, (problems[bag], positions[a:b])) for bag, a, b in tasks],
+                            wait_for_workers=False)
         return _assemble(problems, positions, tasks, results)
 
     def close(self) -> None:

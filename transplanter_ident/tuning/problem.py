@@ -245,6 +245,20 @@ class TuningProblem:
         return batch_objective(self.kernel_input, arrays.initial_state, arrays.initial_covariance, arrays.vehicle,
                                arrays.settings, qs, rs, OBJECTIVES[self.objective])
 
+    def evaluate_serially(self, positions: np.ndarray) -> np.ndarray:
+        """The values of ``__call__``, one candidate after another in this thread.
+
+        Through the sequence objective's own entry, so no parallel kernel is loaded or compiled:
+        what a pool worker or a Dask task runs (each is one slot), and what a cold start compiles.
+        """
+        arrays = FilterArrays.from_config(self.config)
+        qs, rs = candidate_matrices(positions, self.config, self.names)
+        kind = OBJECTIVES[self.objective]
+        return np.array([objective_kernel(self.kernel_input, arrays.initial_state.copy(),
+                                          arrays.initial_covariance.copy(), np.zeros(N_MODEL), np.zeros(N_MEMO),
+                                          arrays.vehicle, arrays.settings, q, r, kind)
+                         for q, r in zip(qs, rs, strict=True)], dtype=np.float64).reshape(len(qs))
+
     def evaluate_noise(self, noise: NoiseParams) -> float:
         """Objective of one NoiseParams (any values, not clipped to the box), single-threaded."""
         arrays = FilterArrays.from_config(replace(self.config, noise=noise))
