@@ -13,7 +13,6 @@ same online and on a replayed bag.
 
 from __future__ import annotations
 
-import math
 from collections import Counter
 from dataclasses import dataclass, field
 
@@ -22,12 +21,12 @@ from transplanter_ident.ekf.joint_ekf import Estimate
 from transplanter_ident.ekf.layout import StepStatus
 from transplanter_ident.epochs.epoch import Epoch, Rejection
 from transplanter_ident.epochs.pairing import PairingStats
+from transplanter_ident.evaluation.convergence_report import convergence_report
+from transplanter_ident.evaluation.health_report import ERROR, OK, WARN, HealthReport
 from transplanter_ident.evaluation.input_health import PairingMonitor, kind_values
-from transplanter_ident.evaluation.validity import Decision, Identifiability
+from transplanter_ident.evaluation.validity import Decision
 from transplanter_ident.evaluation.windows import LatencyStats, RollingRms, TimeWindow
 
-OK, WARN, ERROR = 0, 1, 2
-LEVEL_NAMES = {OK: "OK", WARN: "WARN", ERROR: "ERROR"}
 INPUTS = ("velocity", "heading", "steering")
 
 #: statuses after which the filter state changed or was propagated (outputs are published)
@@ -60,24 +59,6 @@ class HealthThresholds:
                      non_negative=("min_steering_rms", "min_yaw_rate_rms"))
         if self.min_window_epochs < 1:
             raise ValueError(f"diagnostics.min_window_epochs must be >= 1, got {self.min_window_epochs!r}")
-
-
-@dataclass(frozen=True)
-class HealthReport:
-    """One status line for the dashboard (maps 1:1 onto a DiagnosticStatus)."""
-
-    name: str
-    level: int
-    message: str
-    values: tuple[tuple[str, str], ...] = ()
-
-    @property
-    def level_name(self) -> str:
-        return LEVEL_NAMES[self.level]
-
-    def value(self, key: str) -> str:
-        """The value of one key (KeyError if absent)."""
-        return dict(self.values)[key]
 
 
 class InputMonitor:
@@ -263,7 +244,8 @@ class HealthMonitor:
         reports = [self._input_report(self.inputs[name], now) for name in INPUTS]
         reports.append(HealthReport(f"{self.name}: GNSS pairing", *self.pairing.report(now)))
         reports += [self._motion_report(), self._measurement_report(now), self._validity_report(),
-                    self._persistence_report(), self._convergence_report(),
+                    self._persistence_report(), convergence_report(self.name, self._filter.last_estimate, self._filter.updates,
+                                       self.thresholds.converged_rel_std),
                     self._excitation_report(), self._latency_report()]
         return reports
 
@@ -340,33 +322,6 @@ class HealthMonitor:
         if f.last_status is None:
             return HealthReport(name, OK, "no epoch yet", values)
         return HealthReport(name, OK, "measurements accepted", values)
-
-    def _convergence_report(self) -> HealthReport:
-        f = self._filter
-        name = f"{self.name}: convergence"
-        est = f.last_estimate
-        if est is None:
-            return HealthReport(name, WARN, "no estimate yet", (("converged", "false"),))
-        cf, cr = est.cornering_stiffness_front, est.cornering_stiffness_rear
-        rel_f = est.cornering_stiffness_front_std / cf if cf > 0.0 else math.inf
-        rel_r = est.cornering_stiffness_rear_std / cr if cr > 0.0 else math.inf
-        limit = self.thresholds.converged_rel_std
-        converged = f.updates > 0 and rel_f <= limit and rel_r <= limit
-        known = Identifiability.of(rel_f, rel_r, est.stiffness_correlation)
-        values = (("converged", str(converged).lower()), ("cf", f"{cf:.1f}"), ("cr", f"{cr:.1f}"),
-                  ("cf_rel_std", f"{rel_f:.4f}"), ("cr_rel_std", f"{rel_r:.4f}"), ("threshold", f"{limit:g}"),
-                  ("updates", str(f.updates)), ("correlation", f"{est.stiffness_correlation:.5f}"),
-                  ("scale_rel_std", f"{known.scale_std:.4g}"), ("ratio_rel_std", f"{known.ratio_std:.4g}"),
-                  ("weak_direction", f"{known.weak_direction[0]:+.3f} {known.weak_direction[1]:+.3f}"),
-                  ("weak_rel_std", f"{known.weak_std:.4g}"), ("identifiability", known.describe()),
-                  ("tire_saturation_bias", "{:.4f} {:.4f}".format(*est.tire_bias)))
-        if converged:
-            return HealthReport(name, OK, f"converged: Cf {cf:.0f} +- {100 * rel_f:.1f} %, "
-                                f"Cr {cr:.0f} +- {100 * rel_r:.1f} %", values)
-        if f.updates == 0:
-            return HealthReport(name, WARN, "no stiffness update yet", values)
-        return HealthReport(name, WARN, f"not converged: relative std Cf {100 * rel_f:.1f} %, Cr {100 * rel_r:.1f} % "
-                            f"(threshold {100 * limit:g} %); {known.describe()}", values)
 
     def _excitation_report(self) -> HealthReport:
         th = self.thresholds

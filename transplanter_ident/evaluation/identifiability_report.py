@@ -16,7 +16,7 @@ import numpy as np
 from transplanter_ident.config.parameters import FilterOptions
 from transplanter_ident.ekf.joint_ekf import Estimate
 from transplanter_ident.evaluation.cramer_rao import bound_from_information
-from transplanter_ident.evaluation.health import OK, WARN, HealthReport
+from transplanter_ident.evaluation.health_report import OK, WARN, HealthReport
 
 
 def identifiability_report(name: str, information: np.ndarray, estimate: Estimate | None,

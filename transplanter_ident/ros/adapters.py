@@ -35,7 +35,7 @@ from transplanter_ident.epochs.assembler import EpochAssembler
 from transplanter_ident.epochs.checks import joint_angle
 from transplanter_ident.epochs.epoch import Epoch
 from transplanter_ident.epochs.frames import YAW_VARIANCE_IMU, YAW_VARIANCE_POSE, stamp_seconds
-from transplanter_ident.evaluation.health import HealthReport
+from transplanter_ident.evaluation.health_report import HealthReport
 
 #: (assembler, stamp s, message) -> the epochs the sample completes
 Feeder = Callable[[EpochAssembler, float, Any], list[Epoch]]

@@ -21,7 +21,7 @@ from collections.abc import Sequence
 from types import FrameType
 
 from transplanter_ident.config.params_file import ParamsError, flat_to_params, read_params_file
-from transplanter_ident.evaluation.health import OK, WARN, HealthReport
+from transplanter_ident.evaluation.health_report import OK, WARN, HealthReport
 from transplanter_ident.files import OptionalOutput
 
 PARAMS_FILE_FLAG = "--params-file"

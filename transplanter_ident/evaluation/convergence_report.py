@@ -1,0 +1,41 @@
+"""The /diagnostics "convergence" status: the published band of Cf and Cr, and what it pins.
+
+Converged when both relative 1-sigma bands are within ``diagnostics.converged_rel_std``. The
+values add the band's scale / ratio decomposition and weak direction
+(:class:`.validity.Identifiability`) and the tire-saturation bias carried in the band
+(``ekf.min_friction``).
+"""
+
+from __future__ import annotations
+
+import math
+
+from transplanter_ident.ekf.joint_ekf import Estimate
+from transplanter_ident.evaluation.health_report import OK, WARN, HealthReport
+from transplanter_ident.evaluation.validity import Identifiability
+
+
+def convergence_report(node: str, estimate: Estimate | None, updates: int, limit: float) -> HealthReport:
+    """The ``<node>: convergence`` status from the latest published estimate after ``updates`` stiffness updates."""
+    name = f"{node}: convergence"
+    if estimate is None:
+        return HealthReport(name, WARN, "no estimate yet", (("converged", "false"),))
+    cf, cr = estimate.cornering_stiffness_front, estimate.cornering_stiffness_rear
+    rel_f = estimate.cornering_stiffness_front_std / cf if cf > 0.0 else math.inf
+    rel_r = estimate.cornering_stiffness_rear_std / cr if cr > 0.0 else math.inf
+    converged = updates > 0 and rel_f <= limit and rel_r <= limit
+    known = Identifiability.of(rel_f, rel_r, estimate.stiffness_correlation)
+    values = (("converged", str(converged).lower()), ("cf", f"{cf:.1f}"), ("cr", f"{cr:.1f}"),
+              ("cf_rel_std", f"{rel_f:.4f}"), ("cr_rel_std", f"{rel_r:.4f}"), ("threshold", f"{limit:g}"),
+              ("updates", str(updates)), ("correlation", f"{estimate.stiffness_correlation:.5f}"),
+              ("scale_rel_std", f"{known.scale_std:.4g}"), ("ratio_rel_std", f"{known.ratio_std:.4g}"),
+              ("weak_direction", f"{known.weak_direction[0]:+.3f} {known.weak_direction[1]:+.3f}"),
+              ("weak_rel_std", f"{known.weak_std:.4g}"), ("identifiability", known.describe()),
+              ("tire_saturation_bias", "{:.4f} {:.4f}".format(*estimate.tire_bias)))
+    if converged:
+        return HealthReport(name, OK, f"converged: Cf {cf:.0f} +- {100 * rel_f:.1f} %, "
+                            f"Cr {cr:.0f} +- {100 * rel_r:.1f} %", values)
+    if updates == 0:
+        return HealthReport(name, WARN, "no stiffness update yet", values)
+    return HealthReport(name, WARN, f"not converged: relative std Cf {100 * rel_f:.1f} %, Cr {100 * rel_r:.1f} % "
+                        f"(threshold {100 * limit:g} %); {known.describe()}", values)
