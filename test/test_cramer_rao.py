@@ -91,10 +91,33 @@ def test_the_compiled_information_matches_central_differences_of_the_open_loop_m
     theta = np.array([math.log(7000.0), math.log(11000.0), 0.004])
     fast = np.zeros((N_INFORMATION, N_INFORMATION))
     used = output_error_information(kernel_input(epochs), theta, vehicle_array(vehicle), vehicle.antenna_x,
-                                    np.array(R_NOISE), 10.0, 0.3, 2.0, EXACT, work_buffer(), fast)
+                                    np.array(R_NOISE), 10.0, 0.3, 2.0, EXACT, False, work_buffer(), fast)
     slow = slow_information(epochs, theta, vehicle, 10.0)
     assert used == len(epochs) - 3  # one restart per 10 s segment
     np.testing.assert_allclose(fast, slow, rtol=1e-5, atol=1e-6 * np.max(np.abs(slow)))
+
+
+@pytest.mark.parametrize("from_covariance", [False, True])
+def test_the_information_takes_each_epochs_reported_variance_as_the_filter_does(from_covariance: bool) -> None:
+    """With ekf.measurement_noise_from_covariance, R is the reported variance where larger (R floors it)."""
+    from transplanter_ident.ekf.layout import E_VAR_PSI, E_VAR_VY
+
+    vehicle = VehicleParams(antenna_x=0.5)
+    rows = kernel_input(EpochArrays(epochs_from_result(simulate(sine_drive(4, duration=20.0, vehicle=vehicle)))))
+    theta = np.array([math.log(8000.0), math.log(10000.0), 0.0])
+
+    def information(reported_scale: float) -> np.ndarray:
+        scaled = rows.copy()
+        scaled[:, E_VAR_VY], scaled[:, E_VAR_PSI] = reported_scale * R_NOISE[0], reported_scale * R_NOISE[1]
+        out = np.zeros((N_INFORMATION, N_INFORMATION))
+        output_error_information(scaled, theta, vehicle_array(vehicle), vehicle.antenna_x, np.array(R_NOISE), 10.0,
+                                 0.3, 2.0, EXACT, from_covariance, work_buffer(), out)
+        return out
+
+    configured = information(0.0)
+    assert np.all(np.linalg.eigvalsh(configured[:2, :2]) > 0.0)
+    np.testing.assert_array_equal(information(0.5), configured)  # smaller than R: R is the floor
+    np.testing.assert_allclose(information(4.0), configured / 4.0 if from_covariance else configured, rtol=1e-12)
 
 
 def final_bound(name: str, seed: int) -> tuple[tuple[float, float], tuple[float, float], object]:

@@ -73,7 +73,8 @@ def window_information(config: EstimatorConfig, rows: np.ndarray, theta: np.ndar
                                     vehicle_array(config.vehicle), config.vehicle.antenna_x,
                                     np.array(config.noise.measurement_noise, dtype=np.float64), segment,
                                     options.min_speed, options.max_interval,
-                                    EXACT if options.discretization == "exact" else EULER, work_buffer(), information)
+                                    EXACT if options.discretization == "exact" else EULER,
+                                    options.measurement_noise_from_covariance, work_buffer(), information)
     return information, int(used)
 
 

@@ -9,7 +9,8 @@ steering offset b are carried forward exactly with dE/dtheta of :func:`.model.di
     S_{k+1} = E S_k + [dE/dtheta_f u_k, dE/dtheta_r u_k, -E[:, delta]]     (u_k = [x_k; delta; rate])
 
 and the information of the measurements z = [vy + antenna_x r, psi], whose noise is the
-filter's full R (:mod:`.kernels`: the body-frame vy error holds -vx e_psi), is summed:
+filter's full R of each epoch (:mod:`.kernels`: the body-frame vy error holds -vx e_psi; with
+``ekf.measurement_noise_from_covariance``, from the variances the GNSS reports), is summed:
 
     I = sum_k H S_k^T R_k^-1 H S_k      (3 x 3, over ln Cf, ln Cr, b)
 
@@ -28,6 +29,8 @@ from transplanter_ident.ekf.layout import (
     E_STEERING,
     E_STEERING_RATE,
     E_T,
+    E_VAR_PSI,
+    E_VAR_VY,
     E_VY,
     E_YAW_RATE,
     I_LN_CF,
@@ -45,7 +48,7 @@ from transplanter_ident.ekf.layout import (
     Z_VY,
 )
 from transplanter_ident.ekf.model import discretize_heading
-from transplanter_ident.ekf.sequence import heading_error_terms
+from transplanter_ident.ekf.sequence import floored_variance, heading_error_terms
 from transplanter_ident.jit import entry_kernel
 
 #: the parameters of the information matrix, in its order (layout.I_*)
@@ -55,12 +58,14 @@ INFORMATION_PARAMETERS = (*STIFFNESS_PARAMETERS, "steering_offset")
 
 @entry_kernel
 def output_error_information(epochs, theta, vehicle, antenna_x, r_noise, segment, min_speed, max_interval,  # noqa: ANN001, ANN201, PLR0913
-                             method, ws, information):
+                             method, from_covariance, ws, information):
     """Add the Fisher information of ``epochs`` (kernel columns E_*) at ``theta`` to ``information`` (3, 3).
 
     theta : (3,)  ln Cf, ln Cr, steering offset b (rad)
     vehicle : (4,)  model.vehicle_array
     r_noise : (2,)  diag R of vy (m/s)^2 and psi rad^2
+    from_covariance : bool  R per epoch as the filter takes it with ``ekf.measurement_noise_from_covariance``:
+        the variances the epoch reports (E_VAR_VY, E_VAR_PSI) where larger than ``r_noise``
     ws : model.work_buffer()
     Returns the number of epochs that contributed.
     """
@@ -70,6 +75,7 @@ def output_error_information(epochs, theta, vehicle, antenna_x, r_noise, segment
     new_x = np.zeros(nd)
     sens = np.zeros((nd, N_INFORMATION))
     new_sens = np.zeros((nd, N_INFORMATION))
+    r_epoch = np.empty(2)
     start = -math.inf
     used = 0
     for k in range(epochs.shape[0]):
@@ -103,8 +109,11 @@ def output_error_information(epochs, theta, vehicle, antenna_x, r_noise, segment
         x[:] = new_x
         sens[:, :] = new_sens
         # R of z = [vy_antenna, psi] as the filter takes it, inverted
-        extra00, extra01 = heading_error_terms(r_noise, speed)
-        s00, s01, s11 = r_noise[Z_VY] + extra00, extra01, r_noise[Z_SECOND]
+        r_epoch[Z_VY] = floored_variance(r_noise[Z_VY], epochs[k, E_VAR_VY]) if from_covariance else r_noise[Z_VY]
+        r_epoch[Z_SECOND] = (floored_variance(r_noise[Z_SECOND], epochs[k, E_VAR_PSI]) if from_covariance
+                             else r_noise[Z_SECOND])
+        extra00, extra01 = heading_error_terms(r_epoch, speed)
+        s00, s01, s11 = r_epoch[Z_VY] + extra00, extra01, r_epoch[Z_SECOND]
         det = s00 * s11 - s01 * s01
         i00, i01, i11 = s11 / det, -s01 / det, s00 / det
         for p in range(N_INFORMATION):
