@@ -5,7 +5,7 @@ A *backend* runs two kinds of work, always returning results in the order asked:
 * :meth:`Backend.map`: one call per item (decoding bags into epochs);
 * :meth:`Backend.evaluate`: the objective of a batch of candidates (log10 Q/R, eq. 22) on each
   of several bags, as a (bags, candidates) array. Each bag's candidates are split into
-  contiguous chunks, about four per parallel slot in proportion to the bag's epochs, and the
+  contiguous chunks, about ``CHUNKS_PER_SLOT`` per parallel slot in proportion to the bag's epochs, and the
   chunks run as independent tasks, largest first.
 
 Every candidate's value comes from the same compiled kernel (``TuningProblem.evaluate_serially``:
@@ -46,9 +46,9 @@ from transplanter_ident.evaluation.cramer_rao import cramer_rao_bound
 from transplanter_ident.tuning.problem import TuningProblem
 
 #: chunks per parallel slot (more balances uneven tasks better, fewer costs less overhead)
-CHUNKS_PER_SLOT = 4
-#: tasks a pool worker holds at once (one running, one queued)
-WORKER_QUEUE = 2
+CHUNKS_PER_SLOT = 2
+#: tasks a pool worker holds at once (handed out as it returns one)
+WORKER_QUEUE = 1
 #: seconds a starting worker waits for this process's warm-up before going on without it
 HOST_WARM_UP_TIMEOUT = 120.0
 #: seconds to wait for a Dask scheduler
@@ -178,12 +178,15 @@ def _pool_context() -> multiprocessing.context.BaseContext:
 class ProcessBackend:
     """``jobs`` parallel slots (``--jobs N``): this process and a pool of ``jobs - 1`` worker processes.
 
-    Tasks go to whoever is free next: each worker holds two (one running, one queued, so it
-    never waits for this process, whose compiled calls hold the GIL) and gets the next as it
-    returns one; this process runs the next pending one itself meanwhile. So this process
+    Tasks go to whoever is free next: each worker holds ``WORKER_QUEUE`` (one: the compiled calls
+    here release the GIL, so the pool's callback hands the next one out at once) and gets the next
+    as it returns one; this process runs the next pending one itself meanwhile. So this process
     never idles while workers compute, and candidates are not handed to workers that are still
     starting (measured on 4 three-minute bags, 2 cores, idle machine: this process + 1 worker
-    4.3 s, 2 workers with this process waiting 4.7-5.2 s, serial 6.6 s).
+    4.3 s, 2 workers with this process waiting 4.7-5.2 s, serial 6.6 s). With one task queued
+    per worker and two chunks per slot, `--jobs 2` took 0.629 of `--jobs 1` (6 pairs; with two
+    queued and four chunks, 0.664), since a worker holds no queued task when this process runs
+    out of them.
     """
 
     def __init__(self, jobs: int, warm_up: Callable[[Callable[[], None]], None] | None = None,
