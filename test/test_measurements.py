@@ -392,17 +392,52 @@ def test_heading_quaternions_are_checked_before_conversion() -> None:
     assert assembler.drain_rejections() == []
 
 
-def test_epochs_formed_before_the_steering_covered_them_are_counted() -> None:
+@pytest.mark.parametrize(("wait", "uncovered"), [(0.0, 4), (0.25, 3)])
+def test_epochs_formed_before_the_steering_covered_them_are_counted(wait: float, uncovered: int) -> None:
     """An epoch formed before a steering sample at or after its end arrived is counted.
 
-    It goes once the next GNSS epoch has come; a clean stream counts none.
+    It goes once a GNSS epoch more than ``steering_wait`` later has come (0: the next one); a
+    clean stream counts none.
     """
     times, east, north, yaw, _ = circle(duration=2.0)
-    clean = EpochAssembler(AssemblerSettings())
+    clean = EpochAssembler(AssemblerSettings(steering_wait=wait))
     assemble(clean, motion_samples(times, east, north, yaw))
     assert clean.uncovered_epochs == 0
-    short = EpochAssembler(AssemblerSettings())  # the steering stops after t = 1.0 s
+    short = EpochAssembler(AssemblerSettings(steering_wait=wait))  # the steering stops after t = 1.0 s
     epochs = assemble(short, [s for s in motion_samples(times, east, north, yaw)
                               if not (s[0] == "steering" and s[1] > 1.0 + 1e-9)])
-    assert short.uncovered_epochs == 4  # 1.2, 1.4, 1.6 and 1.8: each went when the next GNSS epoch arrived
+    # wait 0: 1.2, 1.4, 1.6 and 1.8 each went when the next GNSS epoch came (2.0 still waits);
+    # wait 0.25: 1.2, 1.4 and 1.6 went when the epoch 0.4 s later came (1.8 and 2.0 still wait)
+    assert short.uncovered_epochs == uncovered
     assert [round(e.t, 1) for e in epochs][-2:] == [1.2, 1.4]  # the rest had no recent steering at all
+
+
+@pytest.mark.parametrize("rate", [5.0, 10.0, 20.0])
+def test_a_steering_stream_that_lags_the_gnss_by_less_than_the_wait_changes_nothing(rate: float) -> None:
+    """Steering samples that arrive up to 0.15 s after the GNSS of the same instant give the in-order epochs.
+
+    With no wait (an epoch goes when the next GNSS epoch comes) the same lag leaves epochs uncovered
+    at 10 and 20 Hz GNSS, formed with the steering held over the end of their interval.
+    """
+    times, east, north, yaw, _ = circle(duration=4.0, rate=rate)
+    in_order = motion_samples(times, east, north, yaw, steering=0.0)
+    steering = [(t, 0.05 * math.sin(2.0 * t)) for t in np.arange(0.0, times[-1] + 0.01, 0.02)]
+    in_order = [s for s in in_order if s[0] != "steering"]
+    lag = 0.15
+
+    def feed(arrival_lag: float) -> list[tuple[str, float, tuple[float, ...]]]:
+        keyed = [(s[1], 1, s) for s in in_order] + [(t + arrival_lag, 0, ("steering", t, (a,))) for t, a in steering]
+        return [sample for *_, sample in sorted(keyed, key=lambda item: (item[0], item[1]))]
+
+    reference = EpochAssembler(AssemblerSettings())
+    expected = assemble(reference, feed(0.0))
+    assert reference.uncovered_epochs == 0 and len(expected) >= 4.0 * rate - 2
+    lagged = EpochAssembler(AssemblerSettings())
+    got = assemble(lagged, feed(lag))
+    assert lagged.uncovered_epochs == 0
+    assert got[:len(expected) - 3] == expected[:len(expected) - 3]  # the last ones still wait for their steering
+    impatient = EpochAssembler(AssemblerSettings(steering_wait=0.0))
+    hurried = assemble(impatient, feed(lag))
+    if rate > 5.0:  # one GNSS period (0.1, 0.05 s) is shorter than the lag
+        assert impatient.uncovered_epochs > len(hurried) // 2
+        assert any(a.steering != b.steering for a, b in zip(hurried, expected, strict=False))

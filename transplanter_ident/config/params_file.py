@@ -97,13 +97,16 @@ class FrameConfig:
 
 @dataclass(frozen=True)
 class SteeringConfig:
-    """Which joint of a sensor_msgs/JointState carries the steering angle."""
+    """Which joint of a sensor_msgs/JointState carries the steering angle, and how long an epoch waits for it."""
 
     joint_name: str = "front_steering"
+    max_wait: float = 0.25  # s of GNSS stamp time an epoch waits for the steering to cover it
 
     def __post_init__(self) -> None:
         if not self.joint_name:
             raise ValueError("steering.joint_name must be a non-empty string")
+        if not (math.isfinite(self.max_wait) and 0.0 <= self.max_wait <= 10.0):
+            raise ValueError(f"steering.max_wait must be a finite number of seconds in [0, 10], got {self.max_wait!r}")
 
 
 @dataclass(frozen=True)

@@ -173,6 +173,10 @@ SCHEMA: tuple[Param, ...] = (
          "from north)", FRAMES),
     _str("steering.joint_name", "front_steering", "joint of a sensor_msgs/JointState that carries the steering "
          "angle"),
+    _float("steering.max_wait", 0.25, "s", "a GNSS epoch waits for a steering sample at or after its time (the "
+           "steering driver may lag the GNSS, or an executor take one topic's backlog first) until a later GNSS "
+           "epoch more than this after it is matched; then it is formed with the steering it has and counted as "
+           "uncovered in /diagnostics (0: as soon as the next GNSS epoch is matched)", 0.0, 10.0),
     # outputs
     _str("output.frame_id", "base_link", "header.frame_id of every output message (the body frame at the CG)"),
     # filter structure (DESIGN.md section 1)

@@ -29,8 +29,9 @@ step re-synchronises by itself), and the vehicle's physical limits: |speed|, a s
 next epoch's start, so one bad heading costs one epoch, not two; two in a row re-anchor.
 
 An epoch is formed only once the steering stream covers its interval (a steering sample at or
-after t_k), or, at the latest, when the next GNSS epoch is matched (then it is counted as
-uncovered), so the result does not depend on whether GNSS or steering arrives first. Plain
+after t_k), or, at the latest, when a GNSS epoch more than ``steering.max_wait`` later is matched
+(then it is counted as uncovered), so the result does not depend on whether GNSS or steering
+arrives first, nor on a steering driver that lags the GNSS by less than that. Plain
 functions and one small stateful assembler, no ROS types: the node, the bag reader and the
 simulator tests all feed the same :class:`EpochAssembler`.
 """
@@ -79,6 +80,7 @@ class AssemblerSettings:
     max_steering: float = 0.7
     match_tolerance: float = 0.02  # s between velocity and heading stamps of one epoch
     steering_timeout: float = 0.5  # s: a newer steering sample must exist within this of t_k
+    steering_wait: float = 0.25  # s: an uncovered epoch goes once a GNSS epoch more than this later is matched
     gnss_delay: float = 0.0  # s: GNSS stamped t describes the motion at t - gnss_delay
     steering_buffer: float = 10.0  # s of steering history kept (bounded memory without GNSS)
     heading_offset: float = 0.0  # rad: yaw of the heading source relative to the vehicle x axis (subtracted)
@@ -104,6 +106,7 @@ class AssemblerSettings:
         return cls(velocity_frame=params.frames.velocity, heading_frame=params.frames.heading,
                    antenna_x=vehicle.antenna_x, antenna_y=vehicle.antenna_y, max_steering=vehicle.max_steering,
                    match_tolerance=params.gnss.pairing_tolerance, gnss_delay=params.gnss.delay,
+                   steering_wait=params.steering.max_wait,
                    heading_offset=vehicle.heading_offset,
                    body_velocity_rotation=vehicle.heading_offset if one_odometry else 0.0,
                    max_stamp_jump=params.gnss.max_stamp_jump, max_speed=vehicle.max_speed,
@@ -312,14 +315,14 @@ class EpochAssembler:
     def _flush(self) -> list[Epoch]:
         """Form the waiting epochs whose interval the steering covers.
 
-        An epoch also goes once a later one waits behind it: it has waited a whole GNSS period
+        An epoch also goes once a GNSS epoch more than ``steering_wait`` later waits behind it
         (counted in :attr:`uncovered_epochs`).
         """
         epochs: list[Epoch] = []
         while self._pending:
             t = self._pending[0][0]
             covered = self._last_steering_stamp >= t - STAMP_EPSILON
-            if not (covered or len(self._pending) > 1):
+            if not (covered or self._pending[-1][0] - t > self.settings.steering_wait):
                 break
             if not covered and self._previous is not None:
                 self.uncovered_epochs += 1

@@ -254,7 +254,7 @@ def _run(settings: AssemblerSettings, pairs: _Pairs, steer_at: np.ndarray, steer
     index = np.concatenate((np.arange(len(steer_at)), np.arange(len(pairs.done))))
     order = np.argsort(events, kind="stable")
     limits = np.array([settings.antenna_x, settings.antenna_y, settings.max_yaw_rate, settings.max_lateral_speed,
-                       settings.steering_timeout, settings.steering_buffer, STAMP_EPSILON])
+                       settings.steering_timeout, settings.steering_buffer, STAMP_EPSILON, settings.steering_wait])
     code = np.full(len(pairs.t), PENDING, dtype=np.int64)
     formed = np.zeros(len(pairs.t), dtype=np.int64)  # the event that formed each pair's epoch
     rows = np.zeros((len(pairs.t), len(ROW_FIELDS)))
@@ -294,7 +294,7 @@ def _epochs_kernel(is_pair, index, ts, vs, pt, pvx, pvy, pyaw, pvar, pyvar, limi
                    max_samples, reanchor, code, rows, formed):
     """The assembler's steering buffer, pending queue, anchors and epochs, event by event (see the module)."""
     ax, ay, max_yaw_rate, max_lateral = limits[0], limits[1], limits[2], limits[3]
-    timeout, keep, eps = limits[4], limits[5], limits[6]
+    timeout, keep, eps, wait = limits[4], limits[5], limits[6], limits[7]
     lo = hi = 0  # steering buffer: ts[lo:hi]
     last_steering = -np.inf
     pend_lo = pend_hi = 0  # pending pairs
@@ -317,7 +317,7 @@ def _epochs_kernel(is_pair, index, ts, vs, pt, pvx, pvy, pyaw, pvar, pyvar, limi
             k = pend_lo
             t = pt[k]
             covered = last_steering >= t - eps
-            if not (covered or pend_hi - pend_lo > 1):
+            if not (covered or pt[pend_hi - 1] - t > wait):
                 break
             if not covered and have_prev:
                 uncovered += 1
