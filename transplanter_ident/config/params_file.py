@@ -35,6 +35,7 @@ from transplanter_ident.config.parameters import (
     NoiseParams,
     ValiditySettings,
     VehicleParams,
+    check_fields,
 )
 from transplanter_ident.config.safe_yaml import (
     YamlLimitError,
@@ -105,8 +106,7 @@ class SteeringConfig:
     def __post_init__(self) -> None:
         if not self.joint_name:
             raise ValueError("steering.joint_name must be a non-empty string")
-        if not (math.isfinite(self.max_wait) and 0.0 <= self.max_wait <= 10.0):
-            raise ValueError(f"steering.max_wait must be a finite number of seconds in [0, 10], got {self.max_wait!r}")
+        check_fields(self, "steering", non_negative=("max_wait",))
 
 
 @dataclass(frozen=True)
@@ -281,14 +281,9 @@ def flat_to_params(flat: Mapping[str, Any]) -> EstimatorParams:
              "noise": _build(NoiseParams, ekf)}
     config = _build(EstimatorConfig, parts)
     return EstimatorParams(
-        config=config,
-        topics=_build(TopicConfig, sections["topics"]),
-        frames=_build(FrameConfig, sections["frames"]),
-        steering=_build(SteeringConfig, sections["steering"]),
-        gnss=_build(GnssConfig, sections["gnss"]),
-        validity=_build(ValiditySettings, sections["validity"]),
-        extra=extra,
-    )
+        config=config, topics=_build(TopicConfig, sections["topics"]), frames=_build(FrameConfig, sections["frames"]),
+        steering=_build(SteeringConfig, sections["steering"]), gnss=_build(GnssConfig, sections["gnss"]),
+        validity=_build(ValiditySettings, sections["validity"]), extra=extra)
 
 
 def parameter_value(params: EstimatorParams, key: str) -> Any:

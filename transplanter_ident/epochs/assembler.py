@@ -28,12 +28,11 @@ step re-synchronises by itself), and the vehicle's physical limits: |speed|, a s
 |lateral speed| at the CG. An epoch beyond a limit is dropped and does not become the
 next epoch's start, so one bad heading costs one epoch, not two; two in a row re-anchor.
 
-An epoch is formed only once the steering stream covers its interval (a steering sample at or
-after t_k), or, at the latest, when a GNSS epoch more than ``steering.max_wait`` later is matched
-(then it is counted as uncovered), so the result does not depend on whether GNSS or steering
-arrives first, nor on a steering driver that lags the GNSS by less than that. Plain
-functions and one small stateful assembler, no ROS types: the node, the bag reader and the
-simulator tests all feed the same :class:`EpochAssembler`.
+An epoch is formed only once the steering stream covers its interval (a steering sample at or after t_k), or
+at the latest when a GNSS epoch more than ``steering.max_wait`` later is matched (then it is counted as
+uncovered): the result does not depend on which of GNSS and steering arrives first, nor on a steering driver
+lagging the GNSS by less. Plain functions and one small stateful assembler, no ROS types: the node, the bag
+reader and the simulator tests all feed the same :class:`EpochAssembler`.
 """
 
 from __future__ import annotations
@@ -106,8 +105,7 @@ class AssemblerSettings:
         return cls(velocity_frame=params.frames.velocity, heading_frame=params.frames.heading,
                    antenna_x=vehicle.antenna_x, antenna_y=vehicle.antenna_y, max_steering=vehicle.max_steering,
                    match_tolerance=params.gnss.pairing_tolerance, gnss_delay=params.gnss.delay,
-                   steering_wait=params.steering.max_wait,
-                   heading_offset=vehicle.heading_offset,
+                   steering_wait=params.steering.max_wait, heading_offset=vehicle.heading_offset,
                    body_velocity_rotation=vehicle.heading_offset if one_odometry else 0.0,
                    max_stamp_jump=params.gnss.max_stamp_jump, max_speed=vehicle.max_speed,
                    max_lateral_speed=vehicle.max_lateral_speed, max_yaw_rate=vehicle.max_yaw_rate,
