@@ -244,9 +244,9 @@ def _run(args: argparse.Namespace) -> int:
     local = SerialBackend() if jobs <= 1 else ProcessBackend(jobs, warm_up=partial(warm_worker, params.config),
                                                              host_warm_up=partial(warm_kernels, params.config))
     remote = open_backend(dask_address=args.dask) if args.dask else local
-    if isinstance(remote, ProcessBackend):
-        remote.start()  # the workers start; this process loads (or compiles) the objective, then reads the bags
     try:
+        if isinstance(remote, ProcessBackend):
+            remote.start()  # the workers start; this process loads (or compiles) the objective, then reads the bags
         return _tune_bags(args, params, local, remote)
     finally:
         for backend in {id(local): local, id(remote): remote}.values():

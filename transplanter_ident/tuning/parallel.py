@@ -5,8 +5,8 @@ A *backend* runs two kinds of work, always returning results in the order asked:
 * :meth:`Backend.map`: one call per item (decoding bags into epochs);
 * :meth:`Backend.evaluate`: the objective of a batch of candidates (log10 Q/R, eq. 22) on each
   of several bags, as a (bags, candidates) array. Each bag's candidates are split into
-  contiguous chunks, about ``CHUNKS_PER_SLOT`` per parallel slot in proportion to the bag's epochs, and the
-  chunks run as independent tasks, largest first.
+  contiguous chunks, about ``CHUNKS_PER_SLOT`` per parallel slot in proportion to the bag's
+  epochs, and the chunks run as independent tasks, largest first.
 
 Every candidate's value comes from the same compiled kernel (``TuningProblem.evaluate_serially``:
 the sequence objective, one candidate after another in the task's thread), which runs each
@@ -75,7 +75,7 @@ def warm_kernels(config: EstimatorConfig) -> None:
     problem.evaluate_serially(problem.start[None, :])
 
 
-def warm_worker(config: EstimatorConfig, wait_for_host: Callable[[], None]) -> None:
+def warm_worker(config: EstimatorConfig, wait_for_host: Callable[[], bool]) -> None:
     """A worker's start: the Cramér-Rao kernel, then the filter run of Table 2 and the objective.
 
     On a cold start the host compiles the step and the objective meanwhile (``host_warm_up`` of
@@ -96,7 +96,7 @@ def warm_replay_kernels(config: EstimatorConfig) -> None:
     run_sequence(config, still)
 
 
-def _start_worker(warm_up: Callable[[Callable[[], None]], None] | None, host_ready: Any) -> None:
+def _start_worker(warm_up: Callable[[Callable[[], bool]], None] | None, host_ready: Any) -> None:
     """Pool initializer: the optional warm-up (loading the kernels), given a wait for the host's."""
     if warm_up is not None:
         warm_up(lambda: host_ready.wait(HOST_WARM_UP_TIMEOUT))
@@ -189,7 +189,7 @@ class ProcessBackend:
     out of them.
     """
 
-    def __init__(self, jobs: int, warm_up: Callable[[Callable[[], None]], None] | None = None,
+    def __init__(self, jobs: int, warm_up: Callable[[Callable[[], bool]], None] | None = None,
                  host_warm_up: Callable[[], None] | None = None) -> None:
         if jobs < 1:
             raise ValueError(f"jobs must be >= 1, got {jobs}")
