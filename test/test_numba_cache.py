@@ -49,3 +49,42 @@ def test_both_state_sizes_load_their_own_kernels_from_one_cache_folder(tmp_path:
         again = run(order, cache)
         for measurement, values in again.items():
             assert values == first[measurement], (order, measurement)
+
+
+LEAN_PROGRAM = """
+import json, sys
+sys.path.insert(0, {test!r})
+from transplanter_ident.jit import load_cached_kernels_lean
+lean = sys.argv[1] == "lean" and load_cached_kernels_lean()
+from helpers import simulate_epochs
+from transplanter_ident.config.parameters import EstimatorConfig
+from transplanter_ident.ekf.joint_ekf import JointEKF
+from transplanter_ident.sim.simulator import SimConfig
+_, epochs = simulate_epochs(SimConfig(duration=20.0, seed=2))
+ekf = JointEKF(EstimatorConfig())
+rows = [[e.cornering_stiffness_front, e.cornering_stiffness_rear, e.cornering_stiffness_front_std,
+         e.cornering_stiffness_rear_std, e.steering_offset] for e in map(ekf.step, epochs)]
+print(json.dumps({{"lean": lean, "registries": "numba.np.linalg" in sys.modules, "rows": rows}}))
+"""
+
+
+def run_node_filter(mode: str, cache: Path) -> dict:
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "PYTHONPATH": str(ROOT)}
+    result = subprocess.run([sys.executable, "-c", LEAN_PROGRAM.format(test=str(ROOT / "test")), mode],
+                            capture_output=True, text=True, timeout=900, env=env, cwd=ROOT)
+    assert result.returncode == 0, result.stderr[-2000:]
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def test_the_nodes_lean_loading_gives_the_same_filter(tmp_path: Path) -> None:
+    """load_cached_kernels_lean (the node's): the same numbers from the cache, and from a cold cache.
+
+    From a filled cache it skips numba's registries (what saves the memory); on a cache miss numba
+    compiles as usual.
+    """
+    plain = run_node_filter("plain", tmp_path / "cache")  # compiles into the folder
+    lean = run_node_filter("lean", tmp_path / "cache")
+    assert lean["lean"] and not lean["registries"] and plain["registries"]
+    assert lean["rows"] == plain["rows"] and len(plain["rows"]) > 50
+    cold = run_node_filter("lean", tmp_path / "cold-cache")
+    assert cold["lean"] and cold["rows"] == plain["rows"]
