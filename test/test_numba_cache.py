@@ -32,9 +32,10 @@ print(json.dumps(values))
 """
 
 
-def run(order: str, cache: Path) -> dict[str, list[float]]:
+def run(order: str, cache: Path, program: str = PROGRAM) -> dict:
+    """The JSON line ``program`` prints, run with ``order`` in a fresh process on the numba cache ``cache``."""
     env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "PYTHONPATH": str(ROOT)}
-    result = subprocess.run([sys.executable, "-c", PROGRAM.format(test=str(ROOT / "test")), order],
+    result = subprocess.run([sys.executable, "-c", program.format(test=str(ROOT / "test")), order],
                             capture_output=True, text=True, timeout=900, env=env, cwd=ROOT)
     assert result.returncode == 0, result.stderr[-2000:]
     return json.loads(result.stdout.strip().splitlines()[-1])
@@ -68,23 +69,15 @@ print(json.dumps({{"lean": lean, "registries": "numba.np.linalg" in sys.modules,
 """
 
 
-def run_node_filter(mode: str, cache: Path) -> dict:
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "PYTHONPATH": str(ROOT)}
-    result = subprocess.run([sys.executable, "-c", LEAN_PROGRAM.format(test=str(ROOT / "test")), mode],
-                            capture_output=True, text=True, timeout=900, env=env, cwd=ROOT)
-    assert result.returncode == 0, result.stderr[-2000:]
-    return json.loads(result.stdout.strip().splitlines()[-1])
-
-
 def test_the_nodes_lean_loading_gives_the_same_filter(tmp_path: Path) -> None:
     """load_cached_kernels_lean (the node's): the same numbers from the cache, and from a cold cache.
 
     From a filled cache it skips numba's registries (what saves the memory); on a cache miss numba
     compiles as usual.
     """
-    plain = run_node_filter("plain", tmp_path / "cache")  # compiles into the folder
-    lean = run_node_filter("lean", tmp_path / "cache")
+    plain = run("plain", tmp_path / "cache", LEAN_PROGRAM)  # compiles into the folder
+    lean = run("lean", tmp_path / "cache", LEAN_PROGRAM)
     assert lean["lean"] and not lean["registries"] and plain["registries"]
     assert lean["rows"] == plain["rows"] and len(plain["rows"]) > 50
-    cold = run_node_filter("lean", tmp_path / "cold-cache")
+    cold = run("lean", tmp_path / "cold-cache", LEAN_PROGRAM)
     assert cold["lean"] and cold["rows"] == plain["rows"]
