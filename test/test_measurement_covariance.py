@@ -20,7 +20,16 @@ from transplanter_ident.bags import SimBagOptions, read_bag, reading_parameters,
 from transplanter_ident.bags.messages import IMU, ODOMETRY, POSE_COV_STAMPED, TYPESTORE, decode_message
 from transplanter_ident.config.params_file import flat_to_params
 from transplanter_ident.ekf.joint_ekf import FilterArrays, JointEKF, run_sequence
-from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD, S_HEADING, Z_SECOND, Z_VY
+from transplanter_ident.ekf.layout import (
+    O_CF,
+    O_CF_STD,
+    O_CR,
+    O_CR_STD,
+    S_HEADING,
+    S_R_FROM_COVARIANCE,
+    Z_SECOND,
+    Z_VY,
+)
 from transplanter_ident.ekf.sequence import epoch_measurement_noise
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler
 from transplanter_ident.sim.scenarios import build_config
@@ -54,7 +63,8 @@ def test_epoch_noise_is_the_reported_variance_floored_by_the_configured_r(on: bo
     for _ in range(200):
         reported = tuple(float(v) for v in rng.choice(values, 3))
         r_epoch = np.zeros(2)
-        epoch_measurement_noise(arrays.measurement_noise, arrays.settings, arrays.settings[S_HEADING] > 0.5,
+        epoch_measurement_noise(arrays.measurement_noise, arrays.settings[S_R_FROM_COVARIANCE] > 0.5,
+                                arrays.settings[S_HEADING] > 0.5,
                                 *reported, r_epoch)
         assert tuple(r_epoch) == obvious_noise(configured, on, heading, reported), reported
 

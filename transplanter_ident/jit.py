@@ -43,16 +43,20 @@ def called_kernel(fn: Callable[..., Any]) -> Any:
     return numba.njit(cache=False, error_model="numpy", _nrt=False)(fn)
 
 
-def sized_kernel(fn: Callable[..., Any] | None = None, *, runtime: bool = True) -> Any:
-    """A kernel made by a per-size factory (not cached; see the module docstring)."""
-    options: dict[str, Any] = {"cache": False, "error_model": "numpy"}
+def _njit(fn: Callable[..., Any] | None, runtime: bool, **options: Any) -> Any:
+    """``numba.njit(**options)`` as a decorator with or without arguments; ``runtime=False`` drops NRT."""
     if not runtime:
         options["_nrt"] = False
 
     def wrap(f: Callable[..., Any]) -> Any:
-        return numba.njit(**options)(f)
+        return numba.njit(error_model="numpy", **options)(f)
 
     return wrap(fn) if fn is not None else wrap
+
+
+def sized_kernel(fn: Callable[..., Any] | None = None, *, runtime: bool = True) -> Any:
+    """A kernel made by a per-size factory (not cached; see the module docstring)."""
+    return _njit(fn, runtime, cache=False)
 
 
 def entry_kernel(fn: Callable[..., Any] | None = None, *, runtime: bool = True) -> Any:
@@ -61,14 +65,7 @@ def entry_kernel(fn: Callable[..., Any] | None = None, *, runtime: bool = True) 
     It releases the GIL while it runs, so this process's other threads go on (the tuning pool's
     hand-out of tasks while this process filters a candidate).
     """
-    options: dict[str, Any] = {"cache": True, "nogil": True, "error_model": "numpy"}
-    if not runtime:
-        options["_nrt"] = False
-
-    def wrap(f: Callable[..., Any]) -> Any:
-        return numba.njit(**options)(f)
-
-    return wrap(fn) if fn is not None else wrap
+    return _njit(fn, runtime, cache=True, nogil=True)
 
 
 def parallel_entry_kernel(fn: Callable[..., Any]) -> Any:

@@ -48,7 +48,7 @@ from transplanter_ident.ekf.layout import (
     Z_VY,
 )
 from transplanter_ident.ekf.model import discretize_heading
-from transplanter_ident.ekf.sequence import floored_variance, heading_error_terms
+from transplanter_ident.ekf.sequence import epoch_measurement_noise, heading_error_terms
 from transplanter_ident.jit import entry_kernel
 
 #: the parameters of the information matrix, in its order (layout.I_*)
@@ -109,9 +109,8 @@ def output_error_information(epochs, theta, vehicle, antenna_x, r_noise, segment
         x[:] = new_x
         sens[:, :] = new_sens
         # R of z = [vy_antenna, psi] as the filter takes it, inverted
-        r_epoch[Z_VY] = floored_variance(r_noise[Z_VY], epochs[k, E_VAR_VY]) if from_covariance else r_noise[Z_VY]
-        r_epoch[Z_SECOND] = (floored_variance(r_noise[Z_SECOND], epochs[k, E_VAR_PSI]) if from_covariance
-                             else r_noise[Z_SECOND])
+        epoch_measurement_noise(r_noise, from_covariance, True, epochs[k, E_VAR_VY], epochs[k, E_VAR_PSI], 0.0,
+                                r_epoch)
         extra00, extra01 = heading_error_terms(r_epoch, speed)
         s00, s01, s11 = r_epoch[Z_VY] + extra00, extra01, r_epoch[Z_SECOND]
         det = s00 * s11 - s01 * s01

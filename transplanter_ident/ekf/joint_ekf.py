@@ -275,7 +275,7 @@ class JointEKF:
         r_noise = a.measurement_noise
         if self._config.options.measurement_noise_from_covariance:  # as run/objective do (sequence.py)
             r_noise = np.zeros(2)
-            epoch_measurement_noise(a.measurement_noise, a.settings, a.settings[S_HEADING] > 0.5,
+            epoch_measurement_noise(a.measurement_noise, True, a.settings[S_HEADING] > 0.5,
                                     epoch.velocity_variance, epoch.heading_variance, epoch.yaw_rate_variance, r_noise)
         ekf_step(self.state, self.covariance, self._model, self._memo, a.vehicle, a.settings,
                  a.process_noise, r_noise, epoch.t, epoch.speed, epoch.steering,

@@ -53,12 +53,15 @@ def floored_variance(configured, reported):
 
 
 @inline_kernel
-def epoch_measurement_noise(r_noise, settings, heading, velocity_variance, heading_variance, yaw_rate_variance,
-                            r_epoch):
-    """R of one epoch into ``r_epoch`` (2,): diag [vy (m/s)^2, psi rad^2 or r (rad/s)^2]."""
+def epoch_measurement_noise(r_noise, from_covariance, heading, velocity_variance, heading_variance,
+                            yaw_rate_variance, r_epoch):
+    """R of one epoch into ``r_epoch`` (2,): diag [vy (m/s)^2, psi rad^2 or r (rad/s)^2].
+
+    ``from_covariance``: ``ekf.measurement_noise_from_covariance`` (settings[S_R_FROM_COVARIANCE]).
+    """
     r_epoch[Z_VY] = r_noise[Z_VY]
     r_epoch[Z_SECOND] = r_noise[Z_SECOND]
-    if settings[S_R_FROM_COVARIANCE] > 0.5:
+    if from_covariance:
         r_epoch[Z_VY] = floored_variance(r_noise[Z_VY], velocity_variance)
         second = heading_variance if heading else yaw_rate_variance
         r_epoch[Z_SECOND] = floored_variance(r_noise[Z_SECOND], second)
@@ -83,7 +86,7 @@ def make_sequence_kernels(step_n, heading):  # noqa: ANN001, ANN201 - numba clos
         out = np.zeros(N_OUTPUTS)
         r_epoch = np.zeros(2)
         for k in range(epochs.shape[0]):
-            epoch_measurement_noise(r_noise, settings, heading, epochs[k, E_VAR_VY], epochs[k, E_VAR_PSI],
+            epoch_measurement_noise(r_noise, settings[S_R_FROM_COVARIANCE] > 0.5, heading, epochs[k, E_VAR_VY], epochs[k, E_VAR_PSI],
                                     epochs[k, E_VAR_YAW_RATE], r_epoch)
             step_n(x, p, model, memo, vehicle, settings, q, r_epoch, epochs[k, E_T], epochs[k, E_SPEED],
                    epochs[k, E_STEERING], epochs[k, E_STEERING_RATE], epochs[k, E_VY], epochs[k, E_PSI],
@@ -104,7 +107,7 @@ def make_sequence_kernels(step_n, heading):  # noqa: ANN001, ANN201 - numba clos
         total = 0.0
         count = 0
         for k in range(epochs.shape[0]):
-            epoch_measurement_noise(r_noise, settings, heading, epochs[k, E_VAR_VY], epochs[k, E_VAR_PSI],
+            epoch_measurement_noise(r_noise, settings[S_R_FROM_COVARIANCE] > 0.5, heading, epochs[k, E_VAR_VY], epochs[k, E_VAR_PSI],
                                     epochs[k, E_VAR_YAW_RATE], r_epoch)
             status = step_n(x, p, model, memo, vehicle, settings, q, r_epoch, epochs[k, E_T], epochs[k, E_SPEED],
                             epochs[k, E_STEERING], epochs[k, E_STEERING_RATE], epochs[k, E_VY], epochs[k, E_PSI],

@@ -243,10 +243,10 @@ class HealthMonitor:
         """The current status lines: one per input, GNSS pairing, motion, measurements, convergence, excitation, latency."""
         reports = [self._input_report(self.inputs[name], now) for name in INPUTS]
         reports.append(HealthReport(f"{self.name}: GNSS pairing", *self.pairing.report(now)))
+        convergence = convergence_report(self.name, self._filter.last_estimate, self._filter.updates,
+                                         self.thresholds.converged_rel_std)
         reports += [self._motion_report(), self._measurement_report(now), self._validity_report(),
-                    self._persistence_report(), convergence_report(self.name, self._filter.last_estimate, self._filter.updates,
-                                       self.thresholds.converged_rel_std),
-                    self._excitation_report(), self._latency_report()]
+                    self._persistence_report(), convergence, self._excitation_report(), self._latency_report()]
         return reports
 
     def _input_report(self, monitor: InputMonitor, now: float) -> HealthReport:

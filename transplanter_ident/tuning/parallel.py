@@ -83,17 +83,11 @@ def warm_worker(config: EstimatorConfig, wait_for_host: Callable[[], bool]) -> N
     step, then waits for the host and finds the step and the objective in numba's disk cache:
     the step, most of the compile time, is compiled once, and the compiles run on both cores.
     """
-    cramer_rao_bound(config, _still_epochs(), config.noise.initial_stiffness, config.vehicle.steering_offset)
-    wait_for_host()
-    warm_replay_kernels(config)
-    warm_kernels(config)
-
-
-def warm_replay_kernels(config: EstimatorConfig) -> None:
-    """Load (or compile) what runs after the search: the filter run of Table 2 and the Cramér-Rao bound."""
     still = _still_epochs()
     cramer_rao_bound(config, still, config.noise.initial_stiffness, config.vehicle.steering_offset)
+    wait_for_host()
     run_sequence(config, still)
+    warm_kernels(config)
 
 
 def _start_worker(warm_up: Callable[[Callable[[], bool]], None] | None, host_ready: Any) -> None:
