@@ -69,7 +69,7 @@ def paper_config(vehicle: VehicleParams = TABLE1_VEHICLE) -> EstimatorConfig:
         vehicle=vehicle,
         options=FilterOptions(discretization="euler", stiffness_state="linear", measurement="yaw_rate",
                               process_noise_units="per_step", estimate_steering_offset=False,
-                              linear_range_check=False, change_detection=False),
+                              linear_range_check=False, change_detection=False, noise_adaptation=False),
         noise=NoiseParams(
             process_noise=(1.0e-4, 1.0e-4, 100.0, 100.0),
             measurement_noise=(4.0e-4, 1.0e-3),

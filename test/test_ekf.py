@@ -26,6 +26,8 @@ from transplanter_ident.ekf.layout import (
     O_CR,
     O_E0,
     O_E1,
+    O_NOISE_SCALE_SECOND,
+    O_NOISE_SCALE_VY,
     O_STATUS,
     W_F,
     X_OFFSET,
@@ -292,7 +294,8 @@ def test_update_is_the_textbook_kalman_update(sequence, name):
     heading = config.options.measurement == "heading"
     epochs = epoch_list(sequence)
     ekf = JointEKF(config)
-    step_all(ekf, epochs[:INJECT])
+    step_all(ekf, epochs[:INJECT - 1])
+    factors = np.array(ekf.step(epochs[INJECT - 1]).row)[[O_NOISE_SCALE_VY, O_NOISE_SCALE_SECOND]]
     x, p = ekf.state.copy(), ekf.covariance.copy()
     epoch = epochs[INJECT]
     x_pred, model, ws = x.copy(), np.zeros(3), work_buffer()
@@ -308,7 +311,7 @@ def test_update_is_the_textbook_kalman_update(sequence, name):
     h[1, 2 if heading else 1] = 1.0
     z = np.array([epoch.antenna_lateral_velocity, epoch.heading if heading else epoch.yaw_rate])
     innovation = z - h @ x_pred
-    r_v, r_2 = arrays.measurement_noise
+    r_v, r_2 = arrays.measurement_noise * factors  # R as the innovations showed it (1 with noise_adaptation off)
     # vy is the GNSS velocity turned by the measured heading: its error holds -vx e_psi (heading mode)
     vx = epoch.speed
     r_full = np.array([[r_v + vx * vx * r_2, -vx * r_2], [-vx * r_2, r_2]]) if heading else np.diag([r_v, r_2])
@@ -350,6 +353,7 @@ def test_covariance_stays_symmetric_positive_semidefinite(name):
 
 
 def test_set_noise_keeps_the_state_and_changes_q_and_r(sequence):
+    """A new R restarts the learned factors on R, so S changes by exactly the new Q dt and R."""
     epochs = epoch_list(sequence)
     base = DEFAULT.noise
     new_r = dataclasses.replace(base, measurement_noise=(9.0e-4, 4.0e-5))
@@ -357,7 +361,9 @@ def test_set_noise_keeps_the_state_and_changes_q_and_r(sequence):
     for noise in (new_r, new_q):
         changed, reference = JointEKF(DEFAULT), JointEKF(DEFAULT)
         step_all(changed, epochs[:INJECT])
-        step_all(reference, epochs[:INJECT])
+        step_all(reference, epochs[:INJECT - 1])
+        factors = np.array(reference.step(epochs[INJECT - 1]).row)[[O_NOISE_SCALE_VY, O_NOISE_SCALE_SECOND]]
+        assert factors[1] > 1.0  # the heading's innovations have raised R (else the restart is not tested)
         changed.set_noise(noise)
         assert changed.config.noise == noise
         np.testing.assert_array_equal(changed.state, reference.state)
@@ -367,7 +373,9 @@ def test_set_noise_keeps_the_state_and_changes_q_and_r(sequence):
         # S = F P F^T + Q dt + R on the measured states (vy, psi): the difference is exactly the change
         (s00_a, s01_a, s11_a), (s00_b, s01_b, s11_b) = a.innovation_covariance, b.innovation_covariance
         d_q = np.array(noise.process_noise) - np.array(base.process_noise)
-        d_r = np.array(noise.measurement_noise) - np.array(base.measurement_noise)
+        # a new R restarts the factors on it (1 for the changed filter), the same R keeps them
+        kept = factors if noise.measurement_noise == base.measurement_noise else np.ones(2)
+        d_r = np.array(noise.measurement_noise) * kept - np.array(base.measurement_noise) * factors
         dt = epochs[INJECT].t - epochs[INJECT - 1].t
         vx = epochs[INJECT].speed  # vy's error holds -vx e_psi: R_psi enters S00 and S01 too
         assert s00_a - s00_b == pytest.approx(d_q[0] * dt + d_r[0] + vx * vx * d_r[1], rel=1e-9, abs=1e-15)

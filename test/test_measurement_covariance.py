@@ -146,7 +146,9 @@ def test_a_degraded_fix_reported_in_the_covariance_does_not_corrupt_the_stiffnes
         print(f"\nR from covariance {'on' if on else 'off'} ({len(rows)} seeds): worst error in the window median "
               f"{100 * figures[on][0]:.1f} %, worst {100 * figures[on][1]:.1f} %; final median {100 * figures[on][2]:.2f} "
               f"%, worst {100 * figures[on][3]:.2f} %; +-2 sigma covers Cf and Cr after 30 s, the lower: {coverage:.3f}")
-    assert figures[False][0] > 0.5  # the scenario matters: without the option the stiffness runs away
+    # the scenario matters: without the option the stiffness runs away (ekf.noise_adaptation, whose memory
+    # is a minute, halves the excursion of a 40 s degradation but cannot follow it)
+    assert figures[False][0] > 0.3
     window_median, window_worst, final_median, final_worst, coverage = figures[True]
     assert window_median <= 0.08 and window_worst <= 0.30
     assert final_median <= 0.03 and final_worst <= 0.06

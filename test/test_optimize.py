@@ -22,6 +22,7 @@ from transplanter_ident.tuning.problem import (
     candidate_matrices,
     noise_to_vector,
     search_box,
+    search_config,
     searched_names,
     vector_to_noise,
 )
@@ -320,11 +321,14 @@ def test_batch_objective_equals_the_serial_filter(sine_epochs, options: FilterOp
     problem = TuningProblem.from_epochs(base, sine_epochs, objective)
     candidates = problem.box.uniform(np.random.default_rng(0), 9)
     batch = problem(candidates)
-    serial = [ekf.sequence_objective(problem.tuned_config(c), sine_epochs, objective) for c in candidates]
+    # candidates are scored without ekf.noise_adaptation (the search measures R itself)
+    serial = [ekf.sequence_objective(search_config(problem.tuned_config(c)), sine_epochs, objective)
+              for c in candidates]
     np.testing.assert_array_equal(batch, serial)
     np.testing.assert_array_equal(problem.evaluate_serially(candidates), batch)
     assert np.all(np.isfinite(batch))
-    assert problem.evaluate_noise(base.noise) == ekf.sequence_objective(base, sine_epochs, objective)
+    assert problem.evaluate_noise(base.noise) == ekf.sequence_objective(search_config(base), sine_epochs, objective)
+    assert problem.tuned_config(candidates[0]).options.noise_adaptation  # the written file keeps the option
 
 
 def test_divergence_gets_a_finite_penalty(sine_epochs) -> None:  # noqa: ANN001

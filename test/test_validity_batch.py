@@ -16,7 +16,7 @@ from drives import run_drive, sine_drive
 from test_validity import CONFIG, SCENARIOS, SETTINGS, epochs_of
 
 from transplanter_ident.config.parameters import ValiditySettings
-from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR_STD, O_NIS, O_STATUS, StepStatus
+from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR_STD, O_NIS_CONFIGURED, O_STATUS, StepStatus
 from transplanter_ident.evaluation.validity import (
     DISTRUSTED,
     RECHECK,
@@ -73,7 +73,7 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
             if what == 0:
                 outputs[start:stop, O_STATUS] = rng.choice(statuses, stop - start)
             elif what == 1:
-                outputs[start:stop, O_NIS] = np.where(rng.random(stop - start) < 0.5, math.nan, 40.0)
+                outputs[start:stop, O_NIS_CONFIGURED] = np.where(rng.random(stop - start) < 0.5, math.nan, 40.0)
             elif what == 2:
                 outputs[start:stop, [O_CF_STD, O_CR_STD]] *= 5.0
             else:

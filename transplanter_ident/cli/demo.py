@@ -62,7 +62,7 @@ OBJECTIVE_BAG = "sine"
 #: the paper's filter (eq. 10, linear stiffness, z = [vy, r]) with a trial-and-error Q/R
 PAPER_OPTIONS = FilterOptions(discretization="euler", stiffness_state="linear", measurement="yaw_rate",
                               process_noise_units="per_step", estimate_steering_offset=False,
-                              linear_range_check=False, change_detection=False)
+                              linear_range_check=False, change_detection=False, noise_adaptation=False)
 PAPER_NOISE = NoiseParams(process_noise=(1.0e-4, 1.0e-4, 100.0, 100.0), measurement_noise=(4.0e-4, 1.0e-3),
                           initial_covariance=(1.0e-2, 1.0e-2, 1.0e6, 1.0e6))
 

@@ -64,6 +64,9 @@ class FilterOptions:
     max_lateral_acceleration: float = 2.0  # m/s^2: likewise
     min_friction: float = 0.3  # lowest friction expected (wet field): the stiffness std holds the bias there; 0 off
     saturation_correction: bool = False  # report Cf, Cr corrected by that bias (min_friction = the field's, if known)
+    noise_adaptation: bool = True  # R raised to what the innovations show (covariance matching), never lowered
+    noise_memory: float = 60.0  # s, time constant of that measure
+    max_noise_scale: float = 100.0  # largest factor on R it may set
     change_detection: bool = True  # the surface-change CUSUM on the innovations
     change_scale: float = 4.0  # innovation variance ratio the surface-change CUSUM tests for
     change_threshold: float = 12.0  # CUSUM alarm level (log-likelihood ratio)
@@ -92,11 +95,13 @@ class FilterOptions:
             raise ValueError(f"ekf.max_interval must be > 0, got {self.max_interval}")
         _check_choice("ekf.process_noise_units", self.process_noise_units, NOISE_UNITS)
         check_fields(self, "ekf", positive=("process_noise_step", "max_slip_angle", "max_lateral_acceleration",
-                                            "change_process_noise", "change_hold",
+                                            "change_process_noise", "change_hold", "noise_memory",
                                             "identifiability_memory", "identifiability_period",
                                             "max_identifiable_rel_std"), non_negative=("identifiability_min_steering",))
         if self.identifiability_max_epochs < 2:
             raise ValueError(f"ekf.identifiability_max_epochs must be >= 2, got {self.identifiability_max_epochs!r}")
+        if not (math.isfinite(self.max_noise_scale) and self.max_noise_scale >= 1.0):
+            raise ValueError(f"ekf.max_noise_scale must be >= 1, got {self.max_noise_scale!r}")
         if not (math.isfinite(self.change_scale) and self.change_scale > 1.0):
             raise ValueError(f"ekf.change_scale must be > 1, got {self.change_scale!r}")
         if not (math.isfinite(self.change_threshold) and self.change_threshold > 0.0):

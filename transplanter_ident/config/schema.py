@@ -228,6 +228,11 @@ SCHEMA: tuple[Param, ...] = (
            "there (mu Fz tanh(C alpha / (mu Fz)), Fz the static load); 0: off", 0.0, 2.0),
     _bool("ekf.saturation_correction", False, "report Cf, Cr corrected by that bias (first order): right when "
           "ekf.min_friction is the friction of the field driven, too high by the bias on a grippier one"),
+    _bool("ekf.noise_adaptation", True, "raise R to what the innovations show (covariance matching over "
+          "ekf.noise_memory; never below the configured or reported R), so noisier sensors neither raise change "
+          "alarms nor narrow the band"),
+    _float("ekf.noise_memory", 60.0, "s", "time constant of the innovations' measure of R", 1.0, 3600.0),
+    _float("ekf.max_noise_scale", 100.0, "", "largest factor on R (variance) the innovations may set", 1.0, 1.0e4),
     _bool("ekf.change_detection", True, "CUSUM test of the innovations for a stiffness change (surface)"),
     _float("ekf.change_scale", 4.0, "", "innovation variance ratio the change test looks for", 1.01, 100.0),
     _float("ekf.change_threshold", 12.0, "", "CUSUM alarm level (log-likelihood ratio)", 1.0, 1000.0),

@@ -6,7 +6,10 @@
   innovation variance (a new surface); an alarm raises the stiffness random walk for a while;
 * :func:`propagate_tire_bias`: the bias the linear tire takes if the surface is as slippery as
   ``ekf.min_friction`` (first order, through the filter's own F and K); the reported stiffness
-  standard deviations include it.
+  standard deviations include it;
+* :func:`learn_noise_scales` / :func:`noise_scale`: R as the innovations show it (covariance
+  matching, E[e e^T] = H P^- H^T + R), never below the configured R. Sensors noisier than R would
+  otherwise look like a stiffness change to the CUSUM at every epoch and narrow the band.
 """
 
 from __future__ import annotations
@@ -19,6 +22,10 @@ from transplanter_ident.ekf.layout import (
     M_ADAPT_UNTIL,
     M_BIAS,
     M_CUSUM,
+    M_NOISE_SECOND,
+    M_NOISE_SPAN_SECOND,
+    M_NOISE_SPAN_VY,
+    M_NOISE_VY,
     O_CHANGE,
     O_CUSUM,
     O_LAT_ACC,
@@ -30,8 +37,11 @@ from transplanter_ident.ekf.layout import (
     S_CUSUM_THRESHOLD,
     S_LINEAR_RANGE,
     S_MAX_LAT_ACC,
+    S_MAX_NOISE_SCALE,
     S_MAX_SLIP,
     S_MIN_FRICTION,
+    S_NOISE_ADAPTATION,
+    S_NOISE_MEMORY,
     V_BIAS,
     VEH_LF,
     VEH_LR,
@@ -160,3 +170,41 @@ def forget_motion_bias(memo, nd):
     """The motion states taken from a measurement carry no bias of the model."""
     for i in range(nd):
         memo[M_BIAS + i] = 0.0
+
+
+@inline_kernel
+def noise_scale(memo, settings, slot, span_slot):
+    """The factor on R of one measurement (memo ``slot``, with its ``span_slot``): 1 until measured, in [1, max]."""
+    if settings[S_NOISE_ADAPTATION] < 0.5 or not memo[span_slot] > 0.0:
+        return 1.0
+    return min(max(memo[slot], 1.0), settings[S_MAX_NOISE_SCALE])
+
+
+@inline_kernel
+def _learn_ratio(memo, settings, slot, span_slot, dt, innovation, prior, noise, r):
+    """One channel: the sample (e^2 - prior) / r, weighted by (noise / (prior + noise))^2 (var e^2 = 2 S^2)."""
+    s = prior + noise
+    weight = (noise / s) ** 2 * dt
+    span = min(memo[span_slot] + weight, settings[S_NOISE_MEMORY])
+    if not span > 0.0:
+        return
+    memo[slot] += weight / span * ((innovation * innovation - prior) / r - memo[slot])
+    memo[span_slot] = span
+
+
+@inline_kernel
+def learn_noise_scales(memo, settings, dt, e0, e1, prior0, prior1, noise0, noise1, r0, r1):
+    """Covariance matching: (e_i^2 - prior_i) / R_i has the mean R_true,i / R_i.
+
+    e0, e1: the innovations; prior0, prior1: what S holds besides this measurement's own noise (H P^- H^T,
+    and in vy the heading's vx^2 R_psi); noise0, noise1: that noise as the step took it (R times the
+    learned factor); r0, r1: this epoch's R as configured (or reported). Each sample weighs
+    (noise / S)^2 (var e^2 = 2 S^2): an epoch whose prior is far less certain than its noise says
+    little about R. A weighted mean over the first ``ekf.noise_memory`` seconds, then exponential with
+    that time constant. Only epochs that passed the gate count.
+    """
+    if settings[S_NOISE_ADAPTATION] < 0.5:
+        return
+    _learn_ratio(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY, dt, e0, prior0, noise0, r0)
+    _learn_ratio(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND, dt, e1, prior1, noise1, r1)
+

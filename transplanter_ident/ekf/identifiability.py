@@ -46,6 +46,8 @@ from transplanter_ident.ekf.layout import (
     O_CORRELATION,
     O_CR,
     O_CR_STD,
+    O_NOISE_SCALE_SECOND,
+    O_NOISE_SCALE_VY,
     O_OFFSET,
     O_STATUS,
     X_THETA_F,
@@ -64,14 +66,18 @@ RELAXED_PERIODS = 10
 SKIPPED = frozenset({StepStatus.REJECTED_INVALID, StepStatus.REJECTED_STAMP, StepStatus.DIVERGED})
 
 
-def window_information(config: EstimatorConfig, rows: np.ndarray, theta: np.ndarray,
-                       segment: float = SEGMENT) -> tuple[np.ndarray, int]:
-    """(3, 3) Fisher information of (ln Cf, ln Cr, b) of the epochs ``rows`` at ``theta``, and the epochs used."""
+def window_information(config: EstimatorConfig, rows: np.ndarray, theta: np.ndarray, segment: float = SEGMENT,
+                       noise_factors: tuple[float, float] = (1.0, 1.0)) -> tuple[np.ndarray, int]:
+    """(3, 3) Fisher information of (ln Cf, ln Cr, b) of the epochs ``rows`` at ``theta``, and the epochs used.
+
+    ``noise_factors``: what the filter's R is above the configured one (layout.O_NOISE_SCALE_*), so the
+    information is that of the measurements as noisy as the innovations show them.
+    """
     options = config.options
     information = np.zeros((N_INFORMATION, N_INFORMATION))
+    r_noise = np.array(config.noise.measurement_noise, dtype=np.float64) * np.maximum(noise_factors, 1.0)
     used = output_error_information(np.ascontiguousarray(rows), np.asarray(theta, dtype=np.float64),
-                                    vehicle_array(config.vehicle), config.vehicle.antenna_x,
-                                    np.array(config.noise.measurement_noise, dtype=np.float64), segment,
+                                    vehicle_array(config.vehicle), config.vehicle.antenna_x, r_noise, segment,
                                     options.min_speed, options.max_interval,
                                     EXACT if options.discretization == "exact" else EULER,
                                     options.measurement_noise_from_covariance, work_buffer(), information)
@@ -175,7 +181,8 @@ class IdentifiabilityGuard:
     def _evaluate(self, rows: np.ndarray, out: np.ndarray, t: float) -> None:
         options = self._config.options
         theta = np.array([math.log(out[O_CF]), math.log(out[O_CR]), out[O_OFFSET]])
-        self.information, _ = window_information(self._config, rows, theta)
+        factors = (float(out[O_NOISE_SCALE_VY]), float(out[O_NOISE_SCALE_SECOND]))
+        self.information, _ = window_information(self._config, rows, theta, noise_factors=factors)
         limit = options.max_identifiable_rel_std
         self._weak = weak_directions(self.information, options.estimate_steering_offset, limit)
         firm = len(weak_directions(self.information, options.estimate_steering_offset, limit / RELAXED_MARGIN)) == 0

@@ -111,7 +111,7 @@ def output_error_information(epochs, theta, vehicle, antenna_x, r_noise, segment
         # R of z = [vy_antenna, psi] as the filter takes it, inverted
         epoch_measurement_noise(r_noise, from_covariance, True, epochs[k, E_VAR_VY], epochs[k, E_VAR_PSI], 0.0,
                                 r_epoch)
-        extra00, extra01 = heading_error_terms(r_epoch, speed)
+        extra00, extra01 = heading_error_terms(r_epoch[Z_SECOND], speed)
         s00, s01, s11 = r_epoch[Z_VY] + extra00, extra01, r_epoch[Z_SECOND]
         det = s00 * s11 - s01 * s01
         i00, i01, i11 = s11 / det, -s01 / det, s00 / det

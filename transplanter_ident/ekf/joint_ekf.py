@@ -21,6 +21,8 @@ from transplanter_ident.ekf.layout import (
     EPOCH_COLUMNS,
     EULER,
     EXACT,
+    M_NOISE_SPAN_SECOND,
+    M_NOISE_VY,
     MAE,
     N_MEMO,
     N_MODEL,
@@ -36,6 +38,8 @@ from transplanter_ident.ekf.layout import (
     O_E0,
     O_E1,
     O_NIS,
+    O_NOISE_SCALE_SECOND,
+    O_NOISE_SCALE_VY,
     O_OFFSET,
     O_OFFSET_STD,
     O_R,
@@ -65,10 +69,13 @@ from transplanter_ident.ekf.layout import (
     S_MAX_GATED,
     S_MAX_INTERVAL,
     S_MAX_LAT_ACC,
+    S_MAX_NOISE_SCALE,
     S_MAX_SLIP,
     S_METHOD,
     S_MIN_FRICTION,
     S_MIN_SPEED,
+    S_NOISE_ADAPTATION,
+    S_NOISE_MEMORY,
     S_P0_OFFSET,
     S_P0_PSI,
     S_P0_R,
@@ -116,6 +123,13 @@ class Estimate:
     def tire_bias(self) -> tuple[float, float]:
         """Relative bias of Cf, Cr on a tire saturating at ekf.min_friction (adaptation.py; held in the std)."""
         return (self.row[O_TIRE_BIAS_F], self.row[O_TIRE_BIAS_R]) if len(self.row) > O_TIRE_BIAS_R else (0.0, 0.0)
+
+    @property
+    def noise_factors(self) -> tuple[float, float]:
+        """The factors on R (vy, then psi or r) the innovations have shown (adaptation.noise_scale; 1: none)."""
+        if len(self.row) <= O_NOISE_SCALE_SECOND:
+            return (1.0, 1.0)
+        return (self.row[O_NOISE_SCALE_VY], self.row[O_NOISE_SCALE_SECOND])
 
     @classmethod
     def from_row(cls, t: float, row: np.ndarray) -> Estimate:
@@ -186,6 +200,9 @@ class FilterArrays:
         settings[S_LINEAR_RANGE] = 1.0 if options.linear_range_check else 0.0
         settings[S_CHANGE_DETECTION] = 1.0 if options.change_detection else 0.0
         settings[S_R_FROM_COVARIANCE] = 1.0 if options.measurement_noise_from_covariance else 0.0
+        settings[S_NOISE_ADAPTATION] = 1.0 if options.noise_adaptation else 0.0
+        settings[S_NOISE_MEMORY] = options.noise_memory
+        settings[S_MAX_NOISE_SCALE] = options.max_noise_scale
         q, p0 = _state_diagonals(noise, options)
         settings[S_P0_THETA_F], settings[S_P0_THETA_R], settings[S_P0_OFFSET] = p0[-3:]  # recovery.py
         x0 = np.zeros(len(q))
@@ -245,9 +262,15 @@ class JointEKF:
         return self._guard.information
 
     def set_noise(self, noise: NoiseParams) -> None:
-        """Swap Q and R at run time; the state and covariance carry on."""
+        """Swap Q and R at run time; the state and covariance carry on.
+
+        A new R restarts the innovations' measure of it (adaptation.learn_noise_scales): its factors
+        were relative to the old R.
+        """
         config = EstimatorConfig(vehicle=self._config.vehicle, options=self._config.options, noise=noise)
         arrays = FilterArrays.from_config(config)
+        if noise.measurement_noise != self._config.noise.measurement_noise:
+            self._memo[M_NOISE_VY:M_NOISE_SPAN_SECOND + 1] = 0.0
         self._guard.set_config(config)
         self._config, self._arrays = config, arrays
 

@@ -35,6 +35,8 @@ from transplanter_ident.ekf.adaptation import (
     detect_change,
     forget_motion_bias,
     known_to,
+    learn_noise_scales,
+    noise_scale,
     propagate_tire_bias,
 )
 from transplanter_ident.ekf.layout import (
@@ -46,6 +48,10 @@ from transplanter_ident.ekf.layout import (
     M_DIVERGED,
     M_GATED,
     M_INITIALISED,
+    M_NOISE_SECOND,
+    M_NOISE_SPAN_SECOND,
+    M_NOISE_SPAN_VY,
+    M_NOISE_VY,
     M_T_PREV,
     N_MODEL,
     N_MOTION_HEADING,
@@ -57,6 +63,9 @@ from transplanter_ident.ekf.layout import (
     O_E0,
     O_E1,
     O_NIS,
+    O_NIS_CONFIGURED,
+    O_NOISE_SCALE_SECOND,
+    O_NOISE_SCALE_VY,
     O_OFFSET,
     O_OFFSET_STD,
     O_R,
@@ -176,6 +185,8 @@ def make_kernels(heading):
         out[O_CORRELATION] = p[nf, nr] / denominator if denominator > 0.0 else 0.0
         out[O_VY_MODEL] = vy_model
         out[O_R_MODEL] = r_model
+        out[O_NOISE_SCALE_VY] = noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY)
+        out[O_NOISE_SCALE_SECOND] = noise_scale(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND)
 
     @inline_kernel
     def predict_n(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):
@@ -215,6 +226,23 @@ def make_kernels(heading):
             model[i] = ws[W_VEC, V_NEW_MODEL, i]
 
     @inline_kernel
+    def configured_nis(e0, e1, hph00, hph01, hph11, r_noise, speed):
+        """The NIS against this epoch's R as configured (or reported), without the learned factor on it.
+
+        The validity's consistency test takes it: innovations larger than R allows (noisier sensors, an
+        unconfigured delay) make the estimate untrusted even where the filter has widened its R.
+        """
+        s00, s01, s11 = hph00 + r_noise[Z_VY], hph01, hph11 + r_noise[Z_SECOND]
+        if heading:
+            extra00, extra01 = heading_error_terms(r_noise[Z_SECOND], speed)
+            s00 += extra00
+            s01 += extra01
+        det = s00 * s11 - s01 * s01
+        if not det > 0.0:
+            return math.nan
+        return (e0 * e0 * s11 - 2.0 * e0 * e1 * s01 + e1 * e1 * s00) / det
+
+    @inline_kernel
     def healthy(x, p, r_model, vy_model, nis):
         """Finite state and outputs, and a covariance below MAX_VARIANCE (else the step is rolled back)."""
         for i in range(n):
@@ -247,10 +275,12 @@ def make_kernels(heading):
         2. Initialise, or re-initialise after a gap (or a clock step back beyond max_interval), at low
            speed or reversing (motion from z).
         3. Predict x and the open-loop model over dt (eq. 12), P = F P F^T + Q dt.
-        4. Innovation, S and NIS with the lever arm in h(x) and the heading error in vy; the CUSUM test.
+        4. Innovation, S and NIS with the lever arm in h(x), the heading error in vy and R as the innovations
+           show it (adaptation.noise_scale); the CUSUM test.
         5. Gate; after max_gated gated epochs in a row, re-initialise the motion states.
         6. Joseph update (motion only outside the linear tire range); clamp the stiffness.
-        7. Roll back if anything became non-finite; re-initialise if that lasts (:mod:`.recovery`).
+        7. Roll back if anything became non-finite; re-initialise if that lasts (:mod:`.recovery`); else
+           propagate the tire's bias and learn R from this epoch's innovations.
         """
         out[:] = 0.0
         # 1.
@@ -305,12 +335,16 @@ def make_kernels(heading):
         antenna_x = settings[S_ANTENNA_X]
         e0 = vy_antenna - (x[X_VY] + antenna_x * x[X_R])
         e1 = wrap_angle(psi - x[X_PSI]) if heading else yaw_rate - x[X_R]
-        s00 = (p[X_VY, X_VY] + 2.0 * antenna_x * p[X_VY, X_R] + antenna_x * antenna_x * p[X_R, X_R]
-               + r_noise[Z_VY])
+        hph00 = p[X_VY, X_VY] + 2.0 * antenna_x * p[X_VY, X_R] + antenna_x * antenna_x * p[X_R, X_R]
+        hph11 = p[h1, h1]
+        r0 = r_noise[Z_VY] * noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY)  # R as the innovations show it
+        r1 = r_noise[Z_SECOND] * noise_scale(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND)
+        s00 = hph00 + r0
         s01 = p[X_VY, h1] + antenna_x * p[X_R, h1]
-        s11 = p[h1, h1] + r_noise[Z_SECOND]
+        s11 = hph11 + r1
+        extra00, extra01 = 0.0, 0.0
         if heading:  # vy is the GNSS velocity turned by the measured heading: e_vy = e_v - vx e_psi
-            extra00, extra01 = heading_error_terms(r_noise, speed)
+            extra00, extra01 = heading_error_terms(r1, speed)
             s00 += extra00
             s01 += extra01
         det = s00 * s11 - s01 * s01
@@ -323,6 +357,7 @@ def make_kernels(heading):
         out[O_S01] = s01
         out[O_S11] = s11
         out[O_NIS] = nis
+        out[O_NIS_CONFIGURED] = configured_nis(e0, e1, hph00, s01 - extra01, hph11, r_noise, speed)
 
         # 5.
         if nis > settings[S_GATE] and _finite(nis):
@@ -353,6 +388,9 @@ def make_kernels(heading):
         cf_now, cr_now = stiffness(x, settings, 0)[0], stiffness(x, settings, 1)[0]
         propagate_tire_bias(memo, vehicle, settings, n, nd, h1, antenna_x, updated, out[O_SLIP_F], out[O_SLIP_R],
                             cf_now, cr_now, log_state, ws)
+        if updated:
+            learn_noise_scales(memo, settings, dt, e0, e1, hph00 + extra00, hph11, r0, r1, r_noise[Z_VY],
+                               r_noise[Z_SECOND])
         write_outputs(x, p, memo, settings, status, r_model, vy_model, out)
         return status
 

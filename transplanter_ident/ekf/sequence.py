@@ -68,12 +68,12 @@ def epoch_measurement_noise(r_noise, from_covariance, heading, velocity_variance
 
 
 @inline_kernel
-def heading_error_terms(r_noise, speed):
-    """What R gains in heading mode: (vx^2 R_psi, -vx R_psi) for (vy, vy) and (vy, psi).
+def heading_error_terms(r_psi, speed):
+    """What R gains in heading mode: (vx^2 R_psi, -vx R_psi) for (vy, vy) and (vy, psi); R_psi = ``r_psi``.
 
     The body-frame vy is the GNSS velocity turned by the *measured* heading, so e_vy = e_v - vx e_psi.
     """
-    return speed * speed * r_noise[Z_SECOND], -speed * r_noise[Z_SECOND]
+    return speed * speed * r_psi, -speed * r_psi
 
 
 def make_sequence_kernels(step_n, heading):  # noqa: ANN001, ANN201 - numba closures

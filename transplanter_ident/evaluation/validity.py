@@ -37,7 +37,7 @@ from transplanter_ident.ekf.layout import (
     O_CR,
     O_CR_STD,
     O_E0,
-    O_NIS,
+    O_NIS_CONFIGURED,
     O_S00,
     O_STATUS,
     StepStatus,
@@ -68,7 +68,7 @@ class Sample:
     yaw_rate: float
     speed: float
     antenna_lateral_velocity: float
-    nis: float
+    nis: float  # against the configured R (layout.O_NIS_CONFIGURED)
     whitened_vy: float  # e0 / sqrt(S00)
     rejected: int = 0  # input samples (and epochs) rejected since the previous epoch
 
@@ -244,7 +244,7 @@ def sample_of(epoch: Epoch, row: np.ndarray, rejected: int = 0) -> Sample:
     return Sample(t=epoch.t, status=StepStatus(int(row[O_STATUS])), cf=float(row[O_CF]), cr=float(row[O_CR]),
                   cf_std=float(row[O_CF_STD]), cr_std=float(row[O_CR_STD]), steering=epoch.steering,
                   yaw_rate=epoch.yaw_rate, speed=epoch.speed,
-                  antenna_lateral_velocity=float(epoch.antenna_lateral_velocity), nis=float(row[O_NIS]),
+                  antenna_lateral_velocity=float(epoch.antenna_lateral_velocity), nis=float(row[O_NIS_CONFIGURED]),
                   whitened_vy=float(row[O_E0]) / math.sqrt(s00) if s00 > 0.0 else 0.0, rejected=int(rejected))
 
 

@@ -23,7 +23,7 @@ from transplanter_ident.ekf.layout import (
     O_CR,
     O_CR_STD,
     O_E0,
-    O_NIS,
+    O_NIS_CONFIGURED,
     O_S00,
     O_STATUS,
     StepStatus,
@@ -69,7 +69,7 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
         whitened = np.divide(outputs[:, O_E0], np.sqrt(np.where(s00 > 0.0, s00, 1.0)), where=s00 > 0.0,
                              out=np.zeros(n))
         sideslip = np.abs(vy) / speed
-    nis = np.ascontiguousarray(outputs[:, O_NIS], dtype=np.float64)
+    nis = np.ascontiguousarray(outputs[:, O_NIS_CONFIGURED], dtype=np.float64)
     plaus = np.flatnonzero(predicted & (speed > 0.0))  # the plausibility checks' epochs
     consist = np.flatnonzero(predicted & np.isfinite(nis))  # the NIS and autocorrelation checks' epochs
     beta = list(map(math.atan2, vy[plaus].tolist(), speed[plaus].tolist()))

@@ -14,7 +14,9 @@ units of the filter state) after the process noises, as the tuner did before the
 
     [log10 q_vy, log10 q_r, (log10 q_psi,) log10 q_Cf, log10 q_Cr, log10 r_vy, log10 r_2]
 
-Every entry not searched keeps the configured value (:func:`candidate_matrices`).
+Every entry not searched keeps the configured value (:func:`candidate_matrices`). Candidates run
+without ``ekf.noise_adaptation`` (:func:`search_arrays`): the search measures R itself, and a filter
+that raised a too-small R to what its innovations show would make every R below the truth score alike.
 
 The objective of one candidate is ``ekf.objective_kernel`` over the whole epoch sequence:
 eq. (21), the mean absolute one-step innovation (``mae``), or the Gaussian innovation
@@ -138,6 +140,16 @@ def vector_to_noise(vector: np.ndarray, base: NoiseParams, names: tuple[str, ...
                    heading_process_noise=values.get("q_psi", base.heading_process_noise))
 
 
+def search_config(config: EstimatorConfig) -> EstimatorConfig:
+    """The filter a candidate is scored with: ``config`` without ``ekf.noise_adaptation``."""
+    return replace(config, options=replace(config.options, noise_adaptation=False))
+
+
+def search_arrays(config: EstimatorConfig) -> FilterArrays:
+    """The kernels' arrays of :func:`search_config`."""
+    return FilterArrays.from_config(search_config(config))
+
+
 def candidate_matrices(positions: np.ndarray, config: EstimatorConfig,
                        names: tuple[str, ...] = NAMES) -> tuple[np.ndarray, np.ndarray]:
     """Diag Q (m, n) in the filter's state layout (densities) and diag R (m, 2) for log10 positions (m, len(names)).
@@ -240,7 +252,7 @@ class TuningProblem:
 
     def __call__(self, positions: np.ndarray) -> np.ndarray:
         """Objective of each row of ``positions`` (m, len(names))."""
-        arrays = FilterArrays.from_config(self.config)
+        arrays = search_arrays(self.config)
         qs, rs = candidate_matrices(positions, self.config, self.names)
         return batch_objective(self.kernel_input, arrays.initial_state, arrays.initial_covariance, arrays.vehicle,
                                arrays.settings, qs, rs, OBJECTIVES[self.objective])
@@ -251,7 +263,7 @@ class TuningProblem:
         Through the sequence objective's own entry, so no parallel kernel is loaded or compiled:
         what a pool worker or a Dask task runs (each is one slot), and what a cold start compiles.
         """
-        arrays = FilterArrays.from_config(self.config)
+        arrays = search_arrays(self.config)
         qs, rs = candidate_matrices(positions, self.config, self.names)
         kind = OBJECTIVES[self.objective]
         return np.array([objective_kernel(self.kernel_input, arrays.initial_state.copy(),
@@ -261,7 +273,7 @@ class TuningProblem:
 
     def evaluate_noise(self, noise: NoiseParams) -> float:
         """Objective of one NoiseParams (any values, not clipped to the box), single-threaded."""
-        arrays = FilterArrays.from_config(replace(self.config, noise=noise))
+        arrays = search_arrays(replace(self.config, noise=noise))
         return float(objective_kernel(self.kernel_input, arrays.initial_state.copy(),
                                       arrays.initial_covariance.copy(), np.zeros(N_MODEL), np.zeros(N_MEMO), arrays.vehicle,
                                       arrays.settings, arrays.process_noise, arrays.measurement_noise,
