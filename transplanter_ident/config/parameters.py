@@ -64,6 +64,7 @@ class FilterOptions:
     max_lateral_acceleration: float = 2.0  # m/s^2: likewise
     min_friction: float = 0.3  # lowest friction expected (wet field): the stiffness std holds the bias there; 0 off
     saturation_correction: bool = False  # report Cf, Cr corrected by that bias (min_friction = the field's, if known)
+    delay_uncertainty: float = 0.0  # s, 1-sigma of the GNSS delay left out of gnss.delay: the std holds its bias
     noise_adaptation: bool = True  # R raised to what the innovations show (covariance matching), never lowered
     noise_memory: float = 60.0  # s, time constant of that measure
     max_noise_scale: float = 100.0  # largest factor on R it may set
@@ -97,7 +98,8 @@ class FilterOptions:
         check_fields(self, "ekf", positive=("process_noise_step", "max_slip_angle", "max_lateral_acceleration",
                                             "change_process_noise", "change_hold", "noise_memory",
                                             "identifiability_memory", "identifiability_period",
-                                            "max_identifiable_rel_std"), non_negative=("identifiability_min_steering",))
+                                            "max_identifiable_rel_std"), non_negative=("identifiability_min_steering",
+                                                                                   "delay_uncertainty"))
         if self.identifiability_max_epochs < 2:
             raise ValueError(f"ekf.identifiability_max_epochs must be >= 2, got {self.identifiability_max_epochs!r}")
         if not (math.isfinite(self.max_noise_scale) and self.max_noise_scale >= 1.0):

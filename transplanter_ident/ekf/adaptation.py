@@ -6,7 +6,8 @@
   innovation variance (a new surface); an alarm raises the stiffness random walk for a while;
 * :func:`propagate_tire_bias`: the bias the linear tire takes if the surface is as slippery as
   ``ekf.min_friction`` (first order, through the filter's own F and K); the reported stiffness
-  standard deviations include it;
+  standard deviations include it; :func:`propagate_delay_bias`: likewise per second of GNSS delay
+  left out of ``gnss.delay`` (the std holds it times ``ekf.delay_uncertainty``);
 * :func:`learn_noise_scales` / :func:`noise_scale`: R as the innovations show it (covariance
   matching, E[e e^T] = H P^- H^T + R), never below the configured R. Sensors noisier than R would
   otherwise look like a stiffness change to the CUSUM at every epoch and narrow the band.
@@ -22,6 +23,7 @@ from transplanter_ident.ekf.layout import (
     M_ADAPT_UNTIL,
     M_BIAS,
     M_CUSUM,
+    M_DELAY_BIAS,
     M_NOISE_SECOND,
     M_NOISE_SPAN_SECOND,
     M_NOISE_SPAN_VY,
@@ -135,26 +137,20 @@ def saturation_deficit(settings, vehicle, slip, stiffness, front):
 
 
 @inline_kernel
-def propagate_tire_bias(memo, vehicle, settings, n, nd, h1, antenna_x, updated, slip_f, slip_r, cf, cr,
-                        log_state, ws):
-    """The estimate's first-order bias b = E[x_true - x] if the tires saturate at ``min_friction``.
+def propagate_bias(memo, slot, n, nd, h1, antenna_x, updated, d_f, d_r, d_b, ws):
+    """B = E[x_true - x] to first order, in memo[slot:slot + n], when the truth moves differently.
 
-    Over an interval the true motion follows the stiffness C e^d (d = :func:`saturation_deficit` of
-    the interval's slip): the prediction misses F[:, theta] d (the filter's own Jacobian, ws[W_F]),
-    so b <- F b + F[:, theta] d; an update (gain K in ws[W_GAIN], zero rows where the step held
-    them) takes b <- (I - K H) b. With ``log_state`` theta = ln C, else theta = C (d C, to first
-    order). Called once the step is accepted; the parameter entries are the stiffness bias (ln C or N/rad).
+    Over an interval the true motion follows the parameters shifted by (d_f, d_r, d_b) (theta_f,
+    theta_r, steering offset): the prediction misses F[:, theta] d (the filter's own Jacobian,
+    ws[W_F]), so b <- F b + F[:, theta] d; an update (gain K in ws[W_GAIN], zero rows where the step
+    held them) takes b <- (I - K H) b. Called once the step is accepted.
     """
-    d_f = saturation_deficit(settings, vehicle, slip_f, cf, True)
-    d_r = saturation_deficit(settings, vehicle, slip_r, cr, False)
-    if not log_state:
-        d_f, d_r = cf * d_f, cr * d_r
     for i in range(n):
-        acc = memo[M_BIAS + i]
+        acc = memo[slot + i]
         if i < nd:
-            acc = ws[W_F, i, nd] * d_f + ws[W_F, i, nd + 1] * d_r
+            acc = ws[W_F, i, nd] * d_f + ws[W_F, i, nd + 1] * d_r + ws[W_F, i, nd + 2] * d_b
             for j in range(n):
-                acc += ws[W_F, i, j] * memo[M_BIAS + j]
+                acc += ws[W_F, i, j] * memo[slot + j]
         ws[W_VEC, V_BIAS, i] = acc
     hb0 = ws[W_VEC, V_BIAS, X_VY] + antenna_x * ws[W_VEC, V_BIAS, X_R]
     hb1 = ws[W_VEC, V_BIAS, h1]
@@ -162,14 +158,41 @@ def propagate_tire_bias(memo, vehicle, settings, n, nd, h1, antenna_x, updated, 
         b = ws[W_VEC, V_BIAS, i]
         if updated:
             b -= ws[W_GAIN, G_K0, i] * hb0 + ws[W_GAIN, G_K1, i] * hb1
-        memo[M_BIAS + i] = b
+        memo[slot + i] = b
+
+
+@inline_kernel
+def propagate_tire_bias(memo, vehicle, settings, n, nd, h1, antenna_x, updated, slip_f, slip_r, cf, cr,
+                        log_state, ws):
+    """The estimate's first-order bias (memo M_BIAS) if the tires saturate at ``min_friction``.
+
+    The true motion follows the stiffness C e^d (d = :func:`saturation_deficit` of the interval's
+    slip). With ``log_state`` theta = ln C, else theta = C (d C, to first order); the parameter
+    entries are the stiffness bias (ln C or N/rad).
+    """
+    d_f = saturation_deficit(settings, vehicle, slip_f, cf, True)
+    d_r = saturation_deficit(settings, vehicle, slip_r, cr, False)
+    if not log_state:
+        d_f, d_r = cf * d_f, cr * d_r
+    propagate_bias(memo, M_BIAS, n, nd, h1, antenna_x, updated, d_f, d_r, 0.0, ws)
+
+
+@inline_kernel
+def propagate_delay_bias(memo, n, nd, h1, antenna_x, updated, steering_rate, ws):
+    """The estimate's first-order bias per second of GNSS delay not in ``gnss.delay`` (memo M_DELAY_BIAS).
+
+    GNSS stamped tau late describes the motion that the steering tau earlier caused: the true wheel
+    angle is the filter's minus tau times the steering rate, a steering offset of tau * rate.
+    """
+    propagate_bias(memo, M_DELAY_BIAS, n, nd, h1, antenna_x, updated, 0.0, 0.0, steering_rate, ws)
 
 
 @inline_kernel
 def forget_motion_bias(memo, nd):
-    """The motion states taken from a measurement carry no bias of the model."""
+    """The motion states taken from a measurement carry no bias of the model (either kind)."""
     for i in range(nd):
         memo[M_BIAS + i] = 0.0
+        memo[M_DELAY_BIAS + i] = 0.0
 
 
 @inline_kernel

@@ -35,6 +35,8 @@ from transplanter_ident.ekf.layout import (
     O_CORRELATION,
     O_CR,
     O_CR_STD,
+    O_DELAY_SENS_F,
+    O_DELAY_SENS_R,
     O_E0,
     O_E1,
     O_NIS,
@@ -60,6 +62,7 @@ from transplanter_ident.ekf.layout import (
     S_CUSUM_CAP,
     S_CUSUM_SCALE,
     S_CUSUM_THRESHOLD,
+    S_DELAY_UNCERTAINTY,
     S_GATE,
     S_HEADING,
     S_HIGH,
@@ -123,6 +126,13 @@ class Estimate:
     def tire_bias(self) -> tuple[float, float]:
         """Relative bias of Cf, Cr on a tire saturating at ekf.min_friction (adaptation.py; held in the std)."""
         return (self.row[O_TIRE_BIAS_F], self.row[O_TIRE_BIAS_R]) if len(self.row) > O_TIRE_BIAS_R else (0.0, 0.0)
+
+    @property
+    def delay_sensitivity(self) -> tuple[float, float]:
+        """Relative error of Cf, Cr per second of GNSS delay left out of gnss.delay (adaptation.py; first order)."""
+        if len(self.row) <= O_DELAY_SENS_R:
+            return (0.0, 0.0)
+        return (self.row[O_DELAY_SENS_F], self.row[O_DELAY_SENS_R])
 
     @property
     def noise_factors(self) -> tuple[float, float]:
@@ -203,6 +213,7 @@ class FilterArrays:
         settings[S_NOISE_ADAPTATION] = 1.0 if options.noise_adaptation else 0.0
         settings[S_NOISE_MEMORY] = options.noise_memory
         settings[S_MAX_NOISE_SCALE] = options.max_noise_scale
+        settings[S_DELAY_UNCERTAINTY] = options.delay_uncertainty
         q, p0 = _state_diagonals(noise, options)
         settings[S_P0_THETA_F], settings[S_P0_THETA_R], settings[S_P0_OFFSET] = p0[-3:]  # recovery.py
         x0 = np.zeros(len(q))

@@ -37,6 +37,7 @@ from transplanter_ident.ekf.adaptation import (
     known_to,
     learn_noise_scales,
     noise_scale,
+    propagate_delay_bias,
     propagate_tire_bias,
 )
 from transplanter_ident.ekf.layout import (
@@ -45,6 +46,7 @@ from transplanter_ident.ekf.layout import (
     M_ADAPT_UNTIL,
     M_BIAS,
     M_CUSUM,
+    M_DELAY_BIAS,
     M_DIVERGED,
     M_GATED,
     M_INITIALISED,
@@ -59,6 +61,7 @@ from transplanter_ident.ekf.layout import (
     O_CF,
     O_CF_STD,
     O_CORRELATION,
+    O_DELAY_SENS_F,
     O_DT,
     O_E0,
     O_E1,
@@ -81,6 +84,7 @@ from transplanter_ident.ekf.layout import (
     O_VY_MODEL,
     S_ANTENNA_X,
     S_CHANGE_DETECTION,
+    S_DELAY_UNCERTAINTY,
     S_GATE,
     S_HIGH,
     S_LOG,
@@ -113,7 +117,7 @@ from transplanter_ident.ekf.layout import (
 )
 from transplanter_ident.ekf.model import discretize_heading, discretize_yaw_rate
 from transplanter_ident.ekf.recovery import make_recovery
-from transplanter_ident.ekf.sequence import heading_error_terms
+from transplanter_ident.ekf.sequence import configured_nis, heading_error_terms
 from transplanter_ident.ekf.update import make_update
 from transplanter_ident.epochs.frames import wrap_angle
 from transplanter_ident.jit import called_kernel, inline_kernel, sized_kernel
@@ -173,12 +177,14 @@ def make_kernels(heading):
         out[O_STATUS] = status.value
         out[O_VY] = x[X_VY]
         out[O_R] = x[X_R]
-        for k in range(2):  # front, rear; the std holds the saturation bias (adaptation.propagate_tire_bias)
+        for k in range(2):  # front, rear; the std holds the saturation and delay biases (adaptation.py)
             c, dc = stiffness(x, settings, k)
             bias = memo[M_BIAS + nf + k]
+            delay_bias = memo[M_DELAY_BIAS + nf + k] * settings[S_DELAY_UNCERTAINTY]
             out[O_CF + k] = c + dc * bias if settings[S_SATURATION_CORRECTION] > 0.5 else c
-            out[O_CF_STD + k] = dc * math.sqrt(max(p[nf + k, nf + k], 0.0) + bias * bias)
+            out[O_CF_STD + k] = dc * math.sqrt(max(p[nf + k, nf + k], 0.0) + bias * bias + delay_bias * delay_bias)
             out[O_TIRE_BIAS_F + k] = dc * bias / c if c != 0.0 else 0.0
+            out[O_DELAY_SENS_F + k] = -dc * memo[M_DELAY_BIAS + nf + k] / c if c != 0.0 else 0.0  # estimate - truth
         out[O_OFFSET] = x[nb]
         out[O_OFFSET_STD] = math.sqrt(max(p[nb, nb], 0.0))
         denominator = math.sqrt(max(p[nf, nf], 0.0) * max(p[nr, nr], 0.0))
@@ -224,23 +230,6 @@ def make_kernels(heading):
         for i in range(nd):
             x[i] = ws[W_VEC, V_NEW_X, i]
             model[i] = ws[W_VEC, V_NEW_MODEL, i]
-
-    @inline_kernel
-    def configured_nis(e0, e1, hph00, hph01, hph11, r_noise, speed):
-        """The NIS against this epoch's R as configured (or reported), without the learned factor on it.
-
-        The validity's consistency test takes it: innovations larger than R allows (noisier sensors, an
-        unconfigured delay) make the estimate untrusted even where the filter has widened its R.
-        """
-        s00, s01, s11 = hph00 + r_noise[Z_VY], hph01, hph11 + r_noise[Z_SECOND]
-        if heading:
-            extra00, extra01 = heading_error_terms(r_noise[Z_SECOND], speed)
-            s00 += extra00
-            s01 += extra01
-        det = s00 * s11 - s01 * s01
-        if not det > 0.0:
-            return math.nan
-        return (e0 * e0 * s11 - 2.0 * e0 * e1 * s01 + e1 * e1 * s00) / det
 
     @inline_kernel
     def healthy(x, p, r_model, vy_model, nis):
@@ -357,7 +346,7 @@ def make_kernels(heading):
         out[O_S01] = s01
         out[O_S11] = s11
         out[O_NIS] = nis
-        out[O_NIS_CONFIGURED] = configured_nis(e0, e1, hph00, s01 - extra01, hph11, r_noise, speed)
+        out[O_NIS_CONFIGURED] = configured_nis(heading, e0, e1, hph00, s01 - extra01, hph11, r_noise, speed)
 
         # 5.
         if nis > settings[S_GATE] and _finite(nis):
@@ -388,6 +377,7 @@ def make_kernels(heading):
         cf_now, cr_now = stiffness(x, settings, 0)[0], stiffness(x, settings, 1)[0]
         propagate_tire_bias(memo, vehicle, settings, n, nd, h1, antenna_x, updated, out[O_SLIP_F], out[O_SLIP_R],
                             cf_now, cr_now, log_state, ws)
+        propagate_delay_bias(memo, n, nd, h1, antenna_x, updated, steering_rate, ws)
         if updated:
             learn_noise_scales(memo, settings, dt, e0, e1, hph00 + extra00, hph11, r0, r1, r_noise[Z_VY],
                                r_noise[Z_SECOND])

@@ -7,7 +7,8 @@ mean absolute innovation, or the innovation negative log-likelihood).
 Both take R per epoch from :func:`epoch_measurement_noise`: the configured R, or, with
 ``ekf.measurement_noise_from_covariance``, the variance the GNSS messages report wherever it is
 larger (the configured R is a floor; issue #12 item 5). The node's step does the same.
-:func:`heading_error_terms` is the full R's correlation, shared by the step and the Fisher information.
+:func:`heading_error_terms` is the full R's correlation, shared by the step and the Fisher information;
+:func:`configured_nis` the step's NIS against the configured R (the validity's consistency test).
 """
 
 from __future__ import annotations
@@ -74,6 +75,24 @@ def heading_error_terms(r_psi, speed):
     The body-frame vy is the GNSS velocity turned by the *measured* heading, so e_vy = e_v - vx e_psi.
     """
     return speed * speed * r_psi, -speed * r_psi
+
+
+@inline_kernel
+def configured_nis(heading, e0, e1, hph00, hph01, hph11, r_noise, speed):
+    """The NIS against this epoch's R as configured (or reported), without the learned factor on it.
+
+    hph: H P^- H^T. The validity's consistency test takes it: innovations larger than R allows (noisier
+    sensors, an unconfigured delay) make the estimate untrusted even where the filter has widened its R.
+    """
+    s00, s01, s11 = hph00 + r_noise[Z_VY], hph01, hph11 + r_noise[Z_SECOND]
+    if heading:
+        extra00, extra01 = heading_error_terms(r_noise[Z_SECOND], speed)
+        s00 += extra00
+        s01 += extra01
+    det = s00 * s11 - s01 * s01
+    if not det > 0.0:
+        return math.nan
+    return (e0 * e0 * s11 - 2.0 * e0 * e1 * s01 + e1 * e1 * s00) / det
 
 
 def make_sequence_kernels(step_n, heading):  # noqa: ANN001, ANN201 - numba closures

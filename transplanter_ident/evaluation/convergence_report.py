@@ -3,7 +3,8 @@
 Converged when both relative 1-sigma bands are within ``diagnostics.converged_rel_std``. The
 values add the band's scale / ratio decomposition and weak direction
 (:class:`.validity.Identifiability`), the tire-saturation bias carried in the band
-(``ekf.min_friction``) and the factors on R the innovations have shown (``ekf.noise_adaptation``).
+(``ekf.min_friction``), the factors on R the innovations have shown (``ekf.noise_adaptation``) and
+how far Cf and Cr move per ms of GNSS delay left out of ``gnss.delay`` (relative, first order).
 """
 
 from __future__ import annotations
@@ -32,7 +33,8 @@ def convergence_report(node: str, estimate: Estimate | None, updates: int, limit
               ("weak_direction", f"{known.weak_direction[0]:+.3f} {known.weak_direction[1]:+.3f}"),
               ("weak_rel_std", f"{known.weak_std:.4g}"), ("identifiability", known.describe()),
               ("tire_saturation_bias", "{:.4f} {:.4f}".format(*estimate.tire_bias)),
-              ("noise_factors", "{:.3f} {:.3f}".format(*estimate.noise_factors)))
+              ("noise_factors", "{:.3f} {:.3f}".format(*estimate.noise_factors)),
+              ("delay_sensitivity_per_ms", "{:+.4f} {:+.4f}".format(*(1.0e-3 * v for v in estimate.delay_sensitivity))))
     if converged:
         return HealthReport(name, OK, f"converged: Cf {cf:.0f} +- {100 * rel_f:.1f} %, "
                             f"Cr {cr:.0f} +- {100 * rel_r:.1f} %", values)
