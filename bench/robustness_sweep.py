@@ -1,0 +1,104 @@
+"""How often the default estimator is confidently wrong, over drives unlike the ones it was tuned on.
+
+Not a test (the tests assert each claim on its own scenario). Each row is one condition of the
+project's simulator (test/drives.py: 2 m/s, +-15 deg sine steer of 6 s, 5 Hz GNSS, 120 s, unless the
+row changes it) over ``--seeds`` seeds, filtered with the default parameters (the vehicle's own
+parameters where the row changes the vehicle). From 30 s on it prints the share of epochs flagged
+valid, the share of valid epochs whose +-2 sigma band misses the truth (Cf or Cr) or whose error
+exceeds 10 %, the share of all epochs the band misses, and the final |error| (median, worst). A
+valid estimate that the band misses is the worst output; an invalid one only costs availability.
+
+Run: ``.venv/bin/python bench/robustness_sweep.py [--seeds 5] [ROW ...]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
+
+from drives import run_drive, sine_drive  # noqa: E402
+from test_validity import epochs_of, validity  # noqa: E402
+
+from transplanter_ident.config.parameters import EstimatorConfig, VehicleParams  # noqa: E402
+from transplanter_ident.sim.signals import StiffnessSchedule, multisine_steering, sine_steering  # noqa: E402
+from transplanter_ident.sim.simulator import SensorNoise, simulate  # noqa: E402
+
+DEG = math.radians
+NOISE = SensorNoise()
+ROWS: dict[str, dict[str, object]] = {
+    "clean": {},
+    "1 m/s": {"speed": 1.0},
+    "3 m/s": {"speed": 3.0},
+    "sine +-5 deg": {"steering": sine_steering(DEG(5.0), 6.0)},
+    "sine +-25 deg": {"steering": sine_steering(DEG(25.0), 6.0)},
+    "sine period 3 s": {"steering": sine_steering(DEG(15.0), 3.0)},
+    "sine period 12 s": {"steering": sine_steering(DEG(15.0), 12.0)},
+    "path tracking +-1 deg": {"steering": sine_steering(DEG(1.0), 8.0)},
+    "multisine +-10 deg": {"steering": multisine_steering(DEG(10.0), (3.0, 5.0, 9.0, 14.0), seed=3)},
+    "GNSS noise 2x": {"noise": replace(NOISE, velocity=2.0 * NOISE.velocity, heading=2.0 * NOISE.heading)},
+    "GNSS noise 3x": {"noise": replace(NOISE, velocity=3.0 * NOISE.velocity, heading=3.0 * NOISE.heading)},
+    "velocity noise 3x": {"noise": replace(NOISE, velocity=3.0 * NOISE.velocity)},
+    "heading noise 1 deg": {"noise": replace(NOISE, heading=DEG(1.0))},
+    "steering noise 0.5 deg": {"noise": replace(NOISE, steering=DEG(0.5))},
+    "GNSS 10 Hz": {"gnss_rate": 10.0},
+    "GNSS 2 Hz": {"gnss_rate": 2.0},
+    "steering offset 2 deg": {"steering_offset": DEG(2.0)},
+    "GNSS 20 ms late, unset": {"gnss_delay": 0.02},
+    "tanh tire, mu 0.5": {"tire": "saturating", "friction": 0.5},
+    "tanh tire, mu 0.2": {"tire": "saturating", "friction": 0.2},
+    "soft tires (3000/4000)": {"stiffness": StiffnessSchedule(front=(3000.0,), rear=(4000.0,))},
+    "stiff tires (30000/40000)": {"stiffness": StiffnessSchedule(front=(30000.0,), rear=(40000.0,))},
+    "heavier, longer vehicle": {"vehicle": VehicleParams(mass=1400.0, lf=0.9, lr=0.6)},
+    "stiffness drifting -40 % over 4 min": {"duration": 240.0, "stiffness": StiffnessSchedule(
+        times=(0.0, 240.0), front=(8000.0, 4800.0), rear=(10000.0, 6000.0), transition=240.0)},
+}
+
+
+def row_figures(overrides: dict[str, object], seeds: int) -> str:
+    shares, finals = [], []
+    for seed in range(seeds):
+        sim = sine_drive(seed, **overrides)
+        result = simulate(sim)
+        run = run_drive(result, EstimatorConfig(vehicle=sim.vehicle))
+        valid = validity(run, epochs_of(result))
+        after = run.t >= 30.0
+        front, rear = run.covered()
+        missed = ~(front & rear)
+        error = np.maximum(np.abs(run.cf / run.true_cf - 1.0), np.abs(run.cr / run.true_cr - 1.0))
+        kept = valid & after
+        shares.append((np.mean(kept[after]), np.mean(missed[kept]) if kept.any() else math.nan,
+                       np.mean(error[kept] > 0.10) if kept.any() else math.nan, np.mean(missed[after])))
+        finals.extend(abs(e) for e in run.final_errors())
+    a = np.array(shares)
+    valid_share = np.mean(a[:, 0])
+    missed_valid = f"{np.nanmean(a[:, 1]):6.3f}" if np.any(np.isfinite(a[:, 1])) else "     -"
+    wrong_valid = f"{np.nanmean(a[:, 2]):6.3f}" if np.any(np.isfinite(a[:, 2])) else "     -"
+    return (f"{valid_share:6.2f} {missed_valid} {wrong_valid} {np.mean(a[:, 3]):8.3f} "
+            f"{100 * np.median(finals):8.1f} {100 * np.max(finals):6.1f}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("rows", nargs="*", help=f"rows to run (default: all): {', '.join(ROWS)}")
+    args = parser.parse_args(argv)
+    unknown = [r for r in args.rows if r not in ROWS]
+    if unknown or args.seeds < 1:
+        parser.error(f"unknown rows {unknown}" if unknown else "--seeds must be >= 1")
+    width = max(len(name) for name in ROWS)
+    print(f"seeds 0-{args.seeds - 1}, from 30 s on; defaults")
+    print(f"{'condition':<{width}}  valid  valid&missed  valid&err>10%  missed  final |err| median, worst [%]")
+    for name in args.rows or ROWS:
+        print(f"{name:<{width}}  {row_figures(ROWS[name], args.seeds)}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
