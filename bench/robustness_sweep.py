@@ -50,6 +50,7 @@ ROWS: dict[str, dict[str, object]] = {
     "GNSS 10 Hz": {"gnss_rate": 10.0},
     "GNSS 2 Hz": {"gnss_rate": 2.0},
     "steering offset 2 deg": {"steering_offset": DEG(2.0)},
+    "GNSS 10 ms late, unset": {"gnss_delay": 0.01},
     "GNSS 20 ms late, unset": {"gnss_delay": 0.02},
     "tanh tire, mu 0.5": {"tire": "saturating", "friction": 0.5},
     "tanh tire, mu 0.2": {"tire": "saturating", "friction": 0.2},

@@ -165,11 +165,13 @@ class ValiditySettings:
     hold_off: float = 1.0  # s a soft check must fail before invalid
     max_nonlinear_fraction: float = 0.2  # of the window's epochs beyond the linear tire range
     max_suspect_fraction: float = 0.1  # of the window's epochs after a rejected sample, or gated/rolled back
+    max_delay_sigmas: float = 3.0  # an unconfigured GNSS delay this many std from 0 (the filter's measure) fails
 
     def __post_init__(self) -> None:
         check_fields(self, "validity", positive=("window", "max_rel_std", "nis_quantile_sigmas",
                                                  "max_autocorrelation", "max_sideslip", "course_ratio",
-                                                 "max_nonlinear_fraction", "max_suspect_fraction"),
+                                                 "max_nonlinear_fraction", "max_suspect_fraction",
+                                                 "max_delay_sigmas"),
                      non_negative=("min_steering_std", "min_yaw_rate_std", "hold_on", "hold_off"))
 
 

@@ -271,6 +271,9 @@ SCHEMA: tuple[Param, ...] = (
            "for excitation (or the steering one)", 0.0, 10.0, read_only=False),
     _float("validity.nis_quantile_sigmas", 3.0, "", "the window's NIS sum may exceed its chi^2 mean by this "
            "many of its sigmas", 0.1, 100.0, read_only=False),
+    _float("validity.max_delay_sigmas", 3.0, "", "the GNSS delay left out of gnss.delay, as the filter measures it "
+           "from its innovations (/diagnostics delay_estimate_ms), this many std from zero makes the estimate "
+           "invalid", 0.5, 100.0, read_only=False),
     _float("validity.max_autocorrelation", 0.3, "", "lag-1 autocorrelation of the whitened vy innovation above "
            "which the filter is inconsistent (an unconfigured delay)", 0.01, 1.0, read_only=False),
     _float("validity.max_sideslip", 0.35, "rad", "median |vy/vx| above which GNSS velocity and heading disagree "

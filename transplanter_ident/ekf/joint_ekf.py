@@ -35,6 +35,8 @@ from transplanter_ident.ekf.layout import (
     O_CORRELATION,
     O_CR,
     O_CR_STD,
+    O_DELAY_ESTIMATE,
+    O_DELAY_ESTIMATE_STD,
     O_DELAY_SENS_F,
     O_DELAY_SENS_R,
     O_E0,
@@ -62,6 +64,7 @@ from transplanter_ident.ekf.layout import (
     S_CUSUM_CAP,
     S_CUSUM_SCALE,
     S_CUSUM_THRESHOLD,
+    S_DELAY_MEMORY,
     S_DELAY_UNCERTAINTY,
     S_GATE,
     S_HEADING,
@@ -133,6 +136,13 @@ class Estimate:
         if len(self.row) <= O_DELAY_SENS_R:
             return (0.0, 0.0)
         return (self.row[O_DELAY_SENS_F], self.row[O_DELAY_SENS_R])
+
+    @property
+    def delay_estimate(self) -> tuple[float, float]:
+        """(s, std s) of the GNSS delay left out of gnss.delay, as the innovations show it (std 0: not yet)."""
+        if len(self.row) <= O_DELAY_ESTIMATE_STD:
+            return (0.0, 0.0)
+        return (self.row[O_DELAY_ESTIMATE], self.row[O_DELAY_ESTIMATE_STD])
 
     @property
     def noise_factors(self) -> tuple[float, float]:
@@ -214,6 +224,7 @@ class FilterArrays:
         settings[S_NOISE_MEMORY] = options.noise_memory
         settings[S_MAX_NOISE_SCALE] = options.max_noise_scale
         settings[S_DELAY_UNCERTAINTY] = options.delay_uncertainty
+        settings[S_DELAY_MEMORY] = options.identifiability_memory
         q, p0 = _state_diagonals(noise, options)
         settings[S_P0_THETA_F], settings[S_P0_THETA_R], settings[S_P0_OFFSET] = p0[-3:]  # recovery.py
         x0 = np.zeros(len(q))

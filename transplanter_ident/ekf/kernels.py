@@ -32,6 +32,7 @@ import math
 
 from transplanter_ident.ekf.adaptation import (
     beyond_linear_range,
+    delay_estimate,
     detect_change,
     forget_motion_bias,
     known_to,
@@ -39,6 +40,7 @@ from transplanter_ident.ekf.adaptation import (
     noise_scale,
     propagate_delay_bias,
     propagate_tire_bias,
+    score_delay,
 )
 from transplanter_ident.ekf.layout import (
     EULER,
@@ -61,6 +63,8 @@ from transplanter_ident.ekf.layout import (
     O_CF,
     O_CF_STD,
     O_CORRELATION,
+    O_DELAY_ESTIMATE,
+    O_DELAY_ESTIMATE_STD,
     O_DELAY_SENS_F,
     O_DT,
     O_E0,
@@ -191,6 +195,7 @@ def make_kernels(heading):
         out[O_CORRELATION] = p[nf, nr] / denominator if denominator > 0.0 else 0.0
         out[O_VY_MODEL] = vy_model
         out[O_R_MODEL] = r_model
+        out[O_DELAY_ESTIMATE], out[O_DELAY_ESTIMATE_STD] = delay_estimate(memo)
         out[O_NOISE_SCALE_VY] = noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY)
         out[O_NOISE_SCALE_SECOND] = noise_scale(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND)
 
@@ -377,10 +382,11 @@ def make_kernels(heading):
         cf_now, cr_now = stiffness(x, settings, 0)[0], stiffness(x, settings, 1)[0]
         propagate_tire_bias(memo, vehicle, settings, n, nd, h1, antenna_x, updated, out[O_SLIP_F], out[O_SLIP_R],
                             cf_now, cr_now, log_state, ws)
-        propagate_delay_bias(memo, n, nd, h1, antenna_x, updated, steering_rate, ws)
+        g0, g1 = propagate_delay_bias(memo, n, nd, h1, antenna_x, updated, steering_rate, ws)
         if updated:
             learn_noise_scales(memo, settings, dt, e0, e1, hph00 + extra00, hph11, r0, r1, r_noise[Z_VY],
                                r_noise[Z_SECOND])
+            score_delay(memo, settings, dt, g0, g1, e0, e1, s00, s01, s11, det)
         write_outputs(x, p, memo, settings, status, r_model, vy_model, out)
         return status
 

@@ -39,7 +39,8 @@ S_P0_THETA_F, S_P0_THETA_R, S_P0_OFFSET = 23, 24, 25  # the parameter states' P0
 S_MIN_FRICTION, S_SATURATION_CORRECTION = 26, 27  # adaptation.propagate_tire_bias
 S_NOISE_ADAPTATION, S_NOISE_MEMORY, S_MAX_NOISE_SCALE = 28, 29, 30  # adaptation.learn_noise_scales
 S_DELAY_UNCERTAINTY = 31  # s, 1-sigma of the GNSS delay left out of gnss.delay (adaptation.propagate_delay_bias)
-N_SETTINGS = 32
+S_DELAY_MEMORY = 32  # s, time constant of adaptation.score_delay (ekf.identifiability_memory)
+N_SETTINGS = 33
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6
@@ -50,7 +51,8 @@ O_TIRE_BIAS_F, O_TIRE_BIAS_R = 24, 25  # relative bias of Cf, Cr a saturating ti
 O_NOISE_SCALE_VY, O_NOISE_SCALE_SECOND = 26, 27  # the factors on R the innovations show (adaptation.noise_scale)
 O_NIS_CONFIGURED = 28  # the NIS against the configured R, without those factors (the validity's consistency test)
 O_DELAY_SENS_F, O_DELAY_SENS_R = 29, 30  # relative error of Cf, Cr per second of GNSS delay left out of gnss.delay
-N_OUTPUTS = 31
+O_DELAY_ESTIMATE, O_DELAY_ESTIMATE_STD = 31, 32  # s: that delay as the innovations show it (std 0: none yet)
+N_OUTPUTS = 33
 
 # memo vector
 M_T_PREV, M_INITIALISED, M_GATED, M_CUSUM, M_ADAPT_UNTIL, M_DIVERGED = 0, 1, 2, 3, 4, 5
@@ -59,7 +61,9 @@ M_BIAS = 6  # memo[M_BIAS + i]: the first-order bias of state i from the tire's 
 # variance to R, for vy and for the second measurement, and the weighted seconds of data in each
 M_NOISE_VY, M_NOISE_SECOND, M_NOISE_SPAN_VY, M_NOISE_SPAN_SECOND = 12, 13, 14, 15
 M_DELAY_BIAS = 16  # memo[M_DELAY_BIAS + i]: the bias of state i per second of unconfigured GNSS delay
-N_MEMO = 22
+# the online measure of that delay (adaptation.score_delay): score, information, seconds of data seen
+M_DELAY_SCORE, M_DELAY_INFORMATION, M_DELAY_SETTLED = 22, 23, 24
+N_MEMO = 25
 
 # the open-loop model's state [vy, r, psi]
 N_MODEL = 3

@@ -4,7 +4,8 @@ Converged when both relative 1-sigma bands are within ``diagnostics.converged_re
 values add the band's scale / ratio decomposition and weak direction
 (:class:`.validity.Identifiability`), the tire-saturation bias carried in the band
 (``ekf.min_friction``), the factors on R the innovations have shown (``ekf.noise_adaptation``) and
-how far Cf and Cr move per ms of GNSS delay left out of ``gnss.delay`` (relative, first order).
+how far Cf and Cr move per ms of GNSS delay left out of ``gnss.delay`` (relative, first order), and
+that delay as the innovations show it (ms, and its std; std 0: not measured yet).
 """
 
 from __future__ import annotations
@@ -34,7 +35,8 @@ def convergence_report(node: str, estimate: Estimate | None, updates: int, limit
               ("weak_rel_std", f"{known.weak_std:.4g}"), ("identifiability", known.describe()),
               ("tire_saturation_bias", "{:.4f} {:.4f}".format(*estimate.tire_bias)),
               ("noise_factors", "{:.3f} {:.3f}".format(*estimate.noise_factors)),
-              ("delay_sensitivity_per_ms", "{:+.4f} {:+.4f}".format(*(1.0e-3 * v for v in estimate.delay_sensitivity))))
+              ("delay_sensitivity_per_ms", "{:+.4f} {:+.4f}".format(*(1.0e-3 * v for v in estimate.delay_sensitivity))),
+              ("delay_estimate_ms", "{:+.1f} {:.1f}".format(*(1.0e3 * v for v in estimate.delay_estimate))))
     if converged:
         return HealthReport(name, OK, f"converged: Cf {cf:.0f} +- {100 * rel_f:.1f} %, "
                             f"Cr {cr:.0f} +- {100 * rel_r:.1f} %", values)

@@ -36,6 +36,8 @@ from transplanter_ident.ekf.layout import (
     O_CF_STD,
     O_CR,
     O_CR_STD,
+    O_DELAY_ESTIMATE,
+    O_DELAY_ESTIMATE_STD,
     O_E0,
     O_NIS_CONFIGURED,
     O_S00,
@@ -71,6 +73,8 @@ class Sample:
     nis: float  # against the configured R (layout.O_NIS_CONFIGURED)
     whitened_vy: float  # e0 / sqrt(S00)
     rejected: int = 0  # input samples (and epochs) rejected since the previous epoch
+    delay: float = 0.0  # s, the GNSS delay left out of gnss.delay as the filter measures it (layout.O_DELAY_ESTIMATE)
+    delay_std: float = 0.0  # s, its std (0: not measured yet)
 
 
 @dataclass(frozen=True)
@@ -149,6 +153,10 @@ class ValidityMonitor:
         worst = max(sample.cf_std / sample.cf, sample.cr_std / sample.cr)
         if not worst <= self.settings.max_rel_std:
             reasons.append(f"not converged (relative 1-sigma {worst:.3f} > {self.settings.max_rel_std:g})")
+        if _delay_shows(sample.delay, sample.delay_std, self.settings.max_delay_sigmas):
+            reasons.append(f"the innovations show a GNSS delay of {1e3 * sample.delay:+.0f} +- {1e3 * sample.delay_std:.0f}"
+                           " ms not in gnss.delay (the stiffness moves ~2 % per ms): set gnss.delay, or tuner "
+                           "--estimate-delay")
         return reasons
 
     def _plausibility(self, window: list[Sample]) -> list[str]:
@@ -224,6 +232,11 @@ def _frames_mixed(window: list[Sample]) -> bool:
     return den > 0.05 ** 2 * len(window) and num / den < -1.0
 
 
+def _delay_shows(delay: float, std: float, sigmas: float) -> bool:
+    """Whether the measured delay is ``sigmas`` std from zero (never before it is measured)."""
+    return std > 0.0 and abs(delay) > sigmas * std
+
+
 def _std(values: list[float]) -> float:
     mean = sum(values) / len(values)
     return math.sqrt(sum((v - mean) * (v - mean) for v in values) / len(values))  # a product, as validity_batch
@@ -245,7 +258,8 @@ def sample_of(epoch: Epoch, row: np.ndarray, rejected: int = 0) -> Sample:
                   cf_std=float(row[O_CF_STD]), cr_std=float(row[O_CR_STD]), steering=epoch.steering,
                   yaw_rate=epoch.yaw_rate, speed=epoch.speed,
                   antenna_lateral_velocity=float(epoch.antenna_lateral_velocity), nis=float(row[O_NIS_CONFIGURED]),
-                  whitened_vy=float(row[O_E0]) / math.sqrt(s00) if s00 > 0.0 else 0.0, rejected=int(rejected))
+                  whitened_vy=float(row[O_E0]) / math.sqrt(s00) if s00 > 0.0 else 0.0, rejected=int(rejected),
+                  delay=float(row[O_DELAY_ESTIMATE]), delay_std=float(row[O_DELAY_ESTIMATE_STD]))
 
 
 def monitor_for(config: EstimatorConfig, settings: ValiditySettings) -> ValidityMonitor:

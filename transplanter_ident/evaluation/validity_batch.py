@@ -22,6 +22,8 @@ from transplanter_ident.ekf.layout import (
     O_CF_STD,
     O_CR,
     O_CR_STD,
+    O_DELAY_ESTIMATE,
+    O_DELAY_ESTIMATE_STD,
     O_E0,
     O_NIS_CONFIGURED,
     O_S00,
@@ -64,7 +66,9 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
         hard = (cf <= low * 1.01) | (cf >= high / 1.01) | (cr <= low * 1.01) | (cr >= high / 1.01)
         front, rear = cf_std / cf, cr_std / cr
         worst = np.where(rear > front, rear, front)  # max(front, rear), NaN as Python's max treats it
-        soft = ~predicted | ~(worst <= settings.max_rel_std)
+        delay, delay_std = outputs[:, O_DELAY_ESTIMATE], outputs[:, O_DELAY_ESTIMATE_STD]
+        timing = (delay_std > 0.0) & (np.abs(delay) > settings.max_delay_sigmas * delay_std)  # validity._delay_shows
+        soft = ~predicted | ~(worst <= settings.max_rel_std) | timing
         s00 = outputs[:, O_S00]
         whitened = np.divide(outputs[:, O_E0], np.sqrt(np.where(s00 > 0.0, s00, 1.0)), where=s00 > 0.0,
                              out=np.zeros(n))
