@@ -125,31 +125,31 @@ class Estimate:
     change_detected: bool = False  # the surface-change test fired at this epoch
     row: tuple[float, ...] = ()  # the whole kernel output row (layout.O_*)
 
+    def _pair(self, first: int, second: int, default: float) -> tuple[float, float]:
+        """Two slots of the output row (layout.O_*); ``default`` for a row from before they existed."""
+        if len(self.row) <= max(first, second):
+            return (default, default)
+        return (self.row[first], self.row[second])
+
     @property
     def tire_bias(self) -> tuple[float, float]:
         """Relative bias of Cf, Cr on a tire saturating at ekf.min_friction (adaptation.py; held in the std)."""
-        return (self.row[O_TIRE_BIAS_F], self.row[O_TIRE_BIAS_R]) if len(self.row) > O_TIRE_BIAS_R else (0.0, 0.0)
+        return self._pair(O_TIRE_BIAS_F, O_TIRE_BIAS_R, 0.0)
 
     @property
     def delay_sensitivity(self) -> tuple[float, float]:
         """Relative error of Cf, Cr per second of GNSS delay left out of gnss.delay (adaptation.py; first order)."""
-        if len(self.row) <= O_DELAY_SENS_R:
-            return (0.0, 0.0)
-        return (self.row[O_DELAY_SENS_F], self.row[O_DELAY_SENS_R])
+        return self._pair(O_DELAY_SENS_F, O_DELAY_SENS_R, 0.0)
 
     @property
     def delay_estimate(self) -> tuple[float, float]:
         """(s, std s) of the GNSS delay left out of gnss.delay, as the innovations show it (std 0: not yet)."""
-        if len(self.row) <= O_DELAY_ESTIMATE_STD:
-            return (0.0, 0.0)
-        return (self.row[O_DELAY_ESTIMATE], self.row[O_DELAY_ESTIMATE_STD])
+        return self._pair(O_DELAY_ESTIMATE, O_DELAY_ESTIMATE_STD, 0.0)
 
     @property
     def noise_factors(self) -> tuple[float, float]:
         """The factors on R (vy, then psi or r) the innovations have shown (adaptation.noise_scale; 1: none)."""
-        if len(self.row) <= O_NOISE_SCALE_SECOND:
-            return (1.0, 1.0)
-        return (self.row[O_NOISE_SCALE_VY], self.row[O_NOISE_SCALE_SECOND])
+        return self._pair(O_NOISE_SCALE_VY, O_NOISE_SCALE_SECOND, 1.0)
 
     @classmethod
     def from_row(cls, t: float, row: np.ndarray) -> Estimate:
