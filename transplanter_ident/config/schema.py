@@ -229,8 +229,8 @@ SCHEMA: tuple[Param, ...] = (
     _bool("ekf.saturation_correction", False, "report Cf, Cr corrected by that bias (first order): right when "
           "ekf.min_friction is the friction of the field driven, too high by the bias on a grippier one"),
     _float("ekf.delay_uncertainty", 0.0, "s", "1-sigma of the GNSS timing error left after gnss.delay (a driver "
-           "stamping on arrival: its latency's spread): the reported Cf, Cr std hold the bias it causes (~1.5 % per "
-           "ms at 2 m/s; /diagnostics delay_sensitivity); 0: off", 0.0, 1.0),
+           "stamping on arrival: its latency's spread): the reported Cf, Cr std hold the bias it causes (~2 % per "
+           "ms at 2 m/s; /diagnostics delay_sensitivity_per_ms); 0: off", 0.0, 1.0),
     _bool("ekf.noise_adaptation", True, "raise R to what the innovations show (covariance matching over "
           "ekf.noise_memory; never below the configured or reported R), so noisier sensors neither raise change "
           "alarms nor narrow the band"),

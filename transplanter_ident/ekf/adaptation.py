@@ -239,7 +239,6 @@ def learn_noise_scales(memo, settings, dt, e0, e1, prior0, prior1, noise0, noise
     _learn_ratio(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND, dt, e1, prior1, noise1, r1)
 
 
-
 #: s of accepted data before the delay is scored: the filter's own start (offset and stiffness converging
 #: from their priors) is not the small, linear response the bias propagation describes
 DELAY_SETTLE = 20.0

@@ -48,7 +48,7 @@ from transplanter_ident.ekf.layout import (
     Z_VY,
 )
 from transplanter_ident.ekf.model import discretize_heading
-from transplanter_ident.ekf.sequence import epoch_measurement_noise, heading_error_terms
+from transplanter_ident.ekf.sequence import epoch_measurement_noise, innovation_covariance
 from transplanter_ident.jit import entry_kernel
 
 #: the parameters of the information matrix, in its order (layout.I_*)
@@ -111,8 +111,7 @@ def output_error_information(epochs, theta, vehicle, antenna_x, r_noise, segment
         # R of z = [vy_antenna, psi] as the filter takes it, inverted
         epoch_measurement_noise(r_noise, from_covariance, True, epochs[k, E_VAR_VY], epochs[k, E_VAR_PSI], 0.0,
                                 r_epoch)
-        extra00, extra01 = heading_error_terms(r_epoch[Z_SECOND], speed)
-        s00, s01, s11 = r_epoch[Z_VY] + extra00, extra01, r_epoch[Z_SECOND]
+        s00, s01, s11 = innovation_covariance(True, 0.0, 0.0, 0.0, r_epoch[Z_VY], r_epoch[Z_SECOND], speed)
         det = s00 * s11 - s01 * s01
         i00, i01, i11 = s11 / det, -s01 / det, s00 / det
         for p in range(N_INFORMATION):

@@ -121,7 +121,7 @@ from transplanter_ident.ekf.layout import (
 )
 from transplanter_ident.ekf.model import discretize_heading, discretize_yaw_rate
 from transplanter_ident.ekf.recovery import make_recovery
-from transplanter_ident.ekf.sequence import configured_nis, heading_error_terms
+from transplanter_ident.ekf.sequence import innovation_covariance, normalized_innovation_squared
 from transplanter_ident.ekf.update import make_update
 from transplanter_ident.epochs.frames import wrap_angle
 from transplanter_ident.jit import called_kernel, inline_kernel, sized_kernel
@@ -274,7 +274,7 @@ def make_kernels(heading):
         5. Gate; after max_gated gated epochs in a row, re-initialise the motion states.
         6. Joseph update (motion only outside the linear tire range); clamp the stiffness.
         7. Roll back if anything became non-finite; re-initialise if that lasts (:mod:`.recovery`); else
-           propagate the tire's bias and learn R from this epoch's innovations.
+           propagate the tire's and the delay's biases, learn R and score the delay from the innovations.
         """
         out[:] = 0.0
         # 1.
@@ -333,25 +333,18 @@ def make_kernels(heading):
         hph11 = p[h1, h1]
         r0 = r_noise[Z_VY] * noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY)  # R as the innovations show it
         r1 = r_noise[Z_SECOND] * noise_scale(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND)
-        s00 = hph00 + r0
-        s01 = p[X_VY, h1] + antenna_x * p[X_R, h1]
-        s11 = hph11 + r1
-        extra00, extra01 = 0.0, 0.0
-        if heading:  # vy is the GNSS velocity turned by the measured heading: e_vy = e_v - vx e_psi
-            extra00, extra01 = heading_error_terms(r1, speed)
-            s00 += extra00
-            s01 += extra01
-        det = s00 * s11 - s01 * s01
-        if not det > 0.0:  # S lost positive definiteness (or is NaN): treat as divergence
-            det = math.nan
-        nis = (e0 * e0 * s11 - 2.0 * e0 * e1 * s01 + e1 * e1 * s00) / det
+        hph01 = p[X_VY, h1] + antenna_x * p[X_R, h1]
+        s00, s01, s11 = innovation_covariance(heading, hph00, hph01, hph11, r0, r1, speed)
+        nis, det = normalized_innovation_squared(e0, e1, s00, s01, s11)  # det NaN: S lost definiteness, roll back
         out[O_E0] = e0
         out[O_E1] = e1
         out[O_S00] = s00
         out[O_S01] = s01
         out[O_S11] = s11
         out[O_NIS] = nis
-        out[O_NIS_CONFIGURED] = configured_nis(heading, e0, e1, hph00, s01 - extra01, hph11, r_noise, speed)
+        # the NIS against the configured R: the validity's consistency test (noisier sensors, a delay left out)
+        c00, c01, c11 = innovation_covariance(heading, hph00, hph01, hph11, r_noise[Z_VY], r_noise[Z_SECOND], speed)
+        out[O_NIS_CONFIGURED] = normalized_innovation_squared(e0, e1, c00, c01, c11)[0]
 
         # 5.
         if nis > settings[S_GATE] and _finite(nis):
@@ -384,7 +377,7 @@ def make_kernels(heading):
                             cf_now, cr_now, log_state, ws)
         g0, g1 = propagate_delay_bias(memo, n, nd, h1, antenna_x, updated, steering_rate, ws)
         if updated:
-            learn_noise_scales(memo, settings, dt, e0, e1, hph00 + extra00, hph11, r0, r1, r_noise[Z_VY],
+            learn_noise_scales(memo, settings, dt, e0, e1, s00 - r0, s11 - r1, r0, r1, r_noise[Z_VY],
                                r_noise[Z_SECOND])
             score_delay(memo, settings, dt, g0, g1, e0, e1, s00, s01, s11, det)
         write_outputs(x, p, memo, settings, status, r_model, vy_model, out)

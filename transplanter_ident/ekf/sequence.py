@@ -7,8 +7,8 @@ mean absolute innovation, or the innovation negative log-likelihood).
 Both take R per epoch from :func:`epoch_measurement_noise`: the configured R, or, with
 ``ekf.measurement_noise_from_covariance``, the variance the GNSS messages report wherever it is
 larger (the configured R is a floor; issue #12 item 5). The node's step does the same.
-:func:`heading_error_terms` is the full R's correlation, shared by the step and the Fisher information;
-:func:`configured_nis` the step's NIS against the configured R (the validity's consistency test).
+:func:`innovation_covariance` (with :func:`heading_error_terms`, the full R's correlation) and
+:func:`normalized_innovation_squared` are shared by the step and the Fisher information.
 """
 
 from __future__ import annotations
@@ -78,21 +78,27 @@ def heading_error_terms(r_psi, speed):
 
 
 @inline_kernel
-def configured_nis(heading, e0, e1, hph00, hph01, hph11, r_noise, speed):
-    """The NIS against this epoch's R as configured (or reported), without the learned factor on it.
+def innovation_covariance(heading, hph00, hph01, hph11, r_vy, r_second, speed):
+    """S = H P^- H^T + R as (s00, s01, s11), R = diag(r_vy, r_second) plus the heading's error in vy (heading mode).
 
-    hph: H P^- H^T. The validity's consistency test takes it: innovations larger than R allows (noisier
-    sensors, an unconfigured delay) make the estimate untrusted even where the filter has widened its R.
+    The step takes it with the learned factors on R (and again without, for the validity's NIS against
+    the configured R); the Fisher information with H P^- H^T = 0.
     """
-    s00, s01, s11 = hph00 + r_noise[Z_VY], hph01, hph11 + r_noise[Z_SECOND]
+    s00, s01, s11 = hph00 + r_vy, hph01, hph11 + r_second
     if heading:
-        extra00, extra01 = heading_error_terms(r_noise[Z_SECOND], speed)
+        extra00, extra01 = heading_error_terms(r_second, speed)
         s00 += extra00
         s01 += extra01
+    return s00, s01, s11
+
+
+@inline_kernel
+def normalized_innovation_squared(e0, e1, s00, s01, s11):
+    """(e^T S^-1 e, det S); both NaN when S is not positive definite (the step then rolls back)."""
     det = s00 * s11 - s01 * s01
     if not det > 0.0:
-        return math.nan
-    return (e0 * e0 * s11 - 2.0 * e0 * e1 * s01 + e1 * e1 * s00) / det
+        det = math.nan
+    return (e0 * e0 * s11 - 2.0 * e0 * e1 * s01 + e1 * e1 * s00) / det, det
 
 
 def make_sequence_kernels(step_n, heading):  # noqa: ANN001, ANN201 - numba closures

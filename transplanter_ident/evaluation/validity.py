@@ -45,7 +45,7 @@ from transplanter_ident.ekf.layout import (
     StepStatus,
 )
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
-from transplanter_ident.evaluation.validity_batch import decide_batch
+from transplanter_ident.evaluation.validity_batch import decide_batch, delay_shows
 
 #: s of data between two evaluations of the window checks
 RECHECK = 1.0
@@ -153,7 +153,7 @@ class ValidityMonitor:
         worst = max(sample.cf_std / sample.cf, sample.cr_std / sample.cr)
         if not worst <= self.settings.max_rel_std:
             reasons.append(f"not converged (relative 1-sigma {worst:.3f} > {self.settings.max_rel_std:g})")
-        if _delay_shows(sample.delay, sample.delay_std, self.settings.max_delay_sigmas):
+        if delay_shows(sample.delay, sample.delay_std, self.settings.max_delay_sigmas):
             reasons.append(f"the innovations show a GNSS delay of {1e3 * sample.delay:+.0f} +- {1e3 * sample.delay_std:.0f}"
                            " ms not in gnss.delay (the stiffness moves ~2 % per ms): set gnss.delay, or tuner "
                            "--estimate-delay")
@@ -230,11 +230,6 @@ def _frames_mixed(window: list[Sample]) -> bool:
         num += rate * b.yaw_rate
         den += b.yaw_rate * b.yaw_rate
     return den > 0.05 ** 2 * len(window) and num / den < -1.0
-
-
-def _delay_shows(delay: float, std: float, sigmas: float) -> bool:
-    """Whether the measured delay is ``sigmas`` std from zero (never before it is measured)."""
-    return std > 0.0 and abs(delay) > sigmas * std
 
 
 def _std(values: list[float]) -> float:

@@ -36,6 +36,11 @@ from transplanter_ident.jit import entry_kernel
 _PREDICTED = (StepStatus.UPDATED, StepStatus.NONLINEAR, StepStatus.GATED)
 
 
+def delay_shows(delay, std, sigmas: float):  # noqa: ANN001, ANN201 - floats or arrays alike
+    """Whether the measured GNSS delay left out is ``sigmas`` std from zero (never before it is measured)."""
+    return (std > 0.0) & (np.abs(delay) > sigmas * std)
+
+
 def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever: float, recheck: float,
                  epochs: EpochArrays, outputs: np.ndarray, rejected: Sequence[int],
                  distrusted: Iterable[StepStatus]) -> np.ndarray | None:
@@ -67,8 +72,7 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
         front, rear = cf_std / cf, cr_std / cr
         worst = np.where(rear > front, rear, front)  # max(front, rear), NaN as Python's max treats it
         delay, delay_std = outputs[:, O_DELAY_ESTIMATE], outputs[:, O_DELAY_ESTIMATE_STD]
-        timing = (delay_std > 0.0) & (np.abs(delay) > settings.max_delay_sigmas * delay_std)  # validity._delay_shows
-        soft = ~predicted | ~(worst <= settings.max_rel_std) | timing
+        soft = ~predicted | ~(worst <= settings.max_rel_std) | delay_shows(delay, delay_std, settings.max_delay_sigmas)
         s00 = outputs[:, O_S00]
         whitened = np.divide(outputs[:, O_E0], np.sqrt(np.where(s00 > 0.0, s00, 1.0)), where=s00 > 0.0,
                              out=np.zeros(n))
