@@ -8,7 +8,7 @@ valid, the share of valid epochs whose +-2 sigma band misses the truth (Cf or Cr
 exceeds 10 %, the share of all epochs the band misses, and the final |error| (median, worst). A
 valid estimate that the band misses is the worst output; an invalid one only costs availability.
 
-Run: ``.venv/bin/python bench/robustness_sweep.py [--seeds 5] [ROW ...]``.
+Run: ``.venv/bin/python bench/robustness_sweep.py [--seeds 5] [--option NAME=VALUE] [ROW ...]``.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 from drives import run_drive, sine_drive  # noqa: E402
 from test_validity import epochs_of, validity  # noqa: E402
 
-from transplanter_ident.config.parameters import EstimatorConfig, VehicleParams  # noqa: E402
+from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, VehicleParams  # noqa: E402
 from transplanter_ident.sim.signals import StiffnessSchedule, multisine_steering, sine_steering  # noqa: E402
 from transplanter_ident.sim.simulator import SensorNoise, simulate  # noqa: E402
 
@@ -54,6 +54,9 @@ ROWS: dict[str, dict[str, object]] = {
     "GNSS 20 ms late, unset": {"gnss_delay": 0.02},
     "tanh tire, mu 0.5": {"tire": "saturating", "friction": 0.5},
     "tanh tire, mu 0.2": {"tire": "saturating", "friction": 0.2},
+    "tanh tire, mu 0.3 (wet)": {"tire": "saturating", "friction": 0.3},
+    "tanh tire, mu 0.3, +-25 deg": {"tire": "saturating", "friction": 0.3, "steering": sine_steering(DEG(25.0), 6.0)},
+    "tanh tire, mu 0.3, 3 m/s": {"tire": "saturating", "friction": 0.3, "speed": 3.0},
     "soft tires (3000/4000)": {"stiffness": StiffnessSchedule(front=(3000.0,), rear=(4000.0,))},
     "stiff tires (30000/40000)": {"stiffness": StiffnessSchedule(front=(30000.0,), rear=(40000.0,))},
     "heavier, longer vehicle": {"vehicle": VehicleParams(mass=1400.0, lf=0.9, lr=0.6)},
@@ -62,12 +65,12 @@ ROWS: dict[str, dict[str, object]] = {
 }
 
 
-def row_figures(overrides: dict[str, object], seeds: int) -> str:
+def row_figures(overrides: dict[str, object], seeds: int, options: FilterOptions) -> str:
     shares, finals = [], []
     for seed in range(seeds):
         sim = sine_drive(seed, **overrides)
         result = simulate(sim)
-        run = run_drive(result, EstimatorConfig(vehicle=sim.vehicle))
+        run = run_drive(result, EstimatorConfig(vehicle=sim.vehicle, options=options))
         valid = validity(run, epochs_of(result))
         after = run.t >= 30.0
         front, rear = run.covered()
@@ -88,16 +91,22 @@ def row_figures(overrides: dict[str, object], seeds: int) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
+                        help="a FilterOptions field (number) to set, e.g. saturation_prior=0 (repeatable)")
     parser.add_argument("rows", nargs="*", help=f"rows to run (default: all): {', '.join(ROWS)}")
     args = parser.parse_args(argv)
     unknown = [r for r in args.rows if r not in ROWS]
     if unknown or args.seeds < 1:
         parser.error(f"unknown rows {unknown}" if unknown else "--seeds must be >= 1")
+    try:
+        options = replace(FilterOptions(), **{k: float(v) for k, v in (o.split("=", 1) for o in args.option)})
+    except (TypeError, ValueError) as error:
+        parser.error(f"--option: {error}")
     width = max(len(name) for name in ROWS)
-    print(f"seeds 0-{args.seeds - 1}, from 30 s on; defaults")
+    print(f"seeds 0-{args.seeds - 1}, from 30 s on; defaults{''.join(' ' + o for o in args.option)}")
     print(f"{'condition':<{width}}  valid  valid&missed  valid&err>10%  missed  final |err| median, worst [%]")
     for name in args.rows or ROWS:
-        print(f"{name:<{width}}  {row_figures(ROWS[name], args.seeds)}", flush=True)
+        print(f"{name:<{width}}  {row_figures(ROWS[name], args.seeds, options)}", flush=True)
     return 0
 
 

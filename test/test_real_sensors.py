@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -104,18 +105,21 @@ WET = {"tire": "saturating", "friction": 0.3}
 
 
 @functools.cache
-def wet_runs(correction: bool = False) -> tuple:
-    config = EstimatorConfig(options=FilterOptions(saturation_correction=correction))
-    return tuple(run_drive(sine_drive(seed, **WET), config) for seed in SEEDS)
+def wet_runs(correction: bool = False, measured: bool = True) -> tuple:
+    options = FilterOptions(saturation_correction=correction, saturation_prior=FilterOptions().saturation_prior
+                            if measured else 0.0)
+    return tuple(run_drive(sine_drive(seed, **WET), EstimatorConfig(options=options)) for seed in SEEDS)
 
 
 def test_a_saturating_tire_is_identified_by_its_small_slip_stiffness() -> None:
     """A wet field (mu 0.3, tanh tire): the tires reach ~35 % of their friction limit at the sine's peaks.
 
-    The linear tire then reads the secant stiffness, 1-7 % below the small-slip one (median |error| <= 5 %).
-    The reported std holds the bias a tire saturating at ekf.min_friction (0.3) gives: +-2 sigma covers
-    the truth in >= 90 % of the epochs after 30 s and >= 90 % of the final errors. Told the field's friction
-    (ekf.saturation_correction), every seed's final error is <= 5 %.
+    The linear tire then reads the secant stiffness, 1-7 % below the small-slip one; the saturation the
+    innovations show (test_tire_saturation.py) takes part of that back (median |error| <= 5 %). The
+    reported std holds what the data leave of the bias a tire saturating at ekf.min_friction (0.3) gives:
+    +-2 sigma covers the truth in >= 90 % of the epochs after 30 s and >= 90 % of the final errors. Told
+    the field's friction (ekf.saturation_correction), every seed's final error is <= 5 %. Beyond the
+    linear range (3 m/s), every seed is within 5 % with the defaults: test_tire_saturation.py.
     """
     runs = wet_runs()
     errors = [e for r in runs for e in r.final_errors()]
@@ -129,18 +133,20 @@ def test_a_saturating_tire_is_identified_by_its_small_slip_stiffness() -> None:
 
 
 def test_the_saturation_term_widens_the_std_and_leaves_the_estimate() -> None:
-    """ekf.min_friction adds the bias to the std only: the estimate is bit-identical with the term off (0).
+    """With the measure off (ekf.saturation_prior 0), ekf.min_friction adds the bias to the std only.
 
-    The bias it reports on the wet field is the one measured (the mean final error, within 1.5 points), and
-    on grippier fields (mu 0.5, linear tires) it is an upper bound: every final error within +-2 sigma.
+    The estimate is then bit-identical with the term off (min_friction 0); the bias it reports on the
+    wet field is the one measured (the mean final error, within 1.5 points), and on grippier fields
+    (mu 0.5, linear tires) it is an upper bound: every final error within +-2 sigma (defaults).
     """
-    off = EstimatorConfig(options=FilterOptions(min_friction=0.0))
+    unmeasured = FilterOptions(saturation_prior=0.0)
+    off = EstimatorConfig(options=replace(unmeasured, min_friction=0.0))
     result = simulate(sine_drive(0, **WET))
-    with_term, without = run_drive(result), run_drive(result, off)
+    with_term, without = run_drive(result, EstimatorConfig(options=unmeasured)), run_drive(result, off)
     np.testing.assert_array_equal(with_term.cf, without.cf)
     np.testing.assert_array_equal(with_term.cr, without.cr)
     assert np.all(with_term.outputs[:, O_CF_STD] >= without.outputs[:, O_CF_STD])
-    runs = wet_runs()
+    runs = wet_runs(measured=False)
     for k in (0, 1):
         measured = -np.mean([r.final_errors()[k] for r in runs])
         reported = np.mean([r.final_tire_bias()[k] for r in runs])

@@ -64,6 +64,8 @@ class FilterOptions:
     max_lateral_acceleration: float = 2.0  # m/s^2: likewise
     min_friction: float = 0.3  # lowest friction expected (wet field): the stiffness std holds the bias there; 0 off
     saturation_correction: bool = False  # report Cf, Cr corrected by that bias (min_friction = the field's, if known)
+    saturation_prior: float = 0.5  # 1-sigma prior of the saturation the innovations measure (1: min_friction); 0 off
+    saturation_memory: float = 300.0  # s, time constant of that measure
     delay_uncertainty: float = 0.0  # s, 1-sigma of the GNSS delay left out of gnss.delay: the std holds its bias
     noise_adaptation: bool = True  # R raised to what the innovations show (covariance matching), never lowered
     noise_memory: float = 60.0  # s, time constant of that measure
@@ -95,11 +97,12 @@ class FilterOptions:
         if not self.max_interval > 0.0:
             raise ValueError(f"ekf.max_interval must be > 0, got {self.max_interval}")
         _check_choice("ekf.process_noise_units", self.process_noise_units, NOISE_UNITS)
-        check_fields(self, "ekf", positive=("process_noise_step", "max_slip_angle", "max_lateral_acceleration",
+        check_fields(self, "ekf", positive=("process_noise_step", "saturation_memory", "max_slip_angle", "max_lateral_acceleration",
                                             "change_process_noise", "change_hold", "noise_memory",
                                             "identifiability_memory", "identifiability_period",
                                             "max_identifiable_rel_std"), non_negative=("identifiability_min_steering",
-                                                                                   "delay_uncertainty"))
+                                                                                   "delay_uncertainty",
+                                                                                   "saturation_prior"))
         if self.identifiability_max_epochs < 2:
             raise ValueError(f"ekf.identifiability_max_epochs must be >= 2, got {self.identifiability_max_epochs!r}")
         if not (math.isfinite(self.max_noise_scale) and self.max_noise_scale >= 1.0):

@@ -228,6 +228,12 @@ SCHEMA: tuple[Param, ...] = (
            "there (mu Fz tanh(C alpha / (mu Fz)), Fz the static load); 0: off", 0.0, 2.0),
     _bool("ekf.saturation_correction", False, "report Cf, Cr corrected by that bias (first order): right when "
           "ekf.min_friction is the friction of the field driven, too high by the bias on a grippier one"),
+    _float("ekf.saturation_prior", 0.5, "", "the innovations measure how far the tires saturate, as a fraction a "
+           "of a tire at ekf.min_friction (a = 1 there, 0 on a linear tire; /diagnostics tire_saturation): Cf, Cr "
+           "are corrected by a's posterior times that bias, with a prior N(0, this^2) (0.5: a field as slippery as "
+           "ekf.min_friction is a 2-sigma event); the std keeps the bias the data do not pin; 0: off", 0.0, 10.0),
+    _float("ekf.saturation_memory", 300.0, "s", "time constant of that measure (a surface change restarts it)",
+           1.0, 1.0e5),
     _float("ekf.delay_uncertainty", 0.0, "s", "1-sigma of the GNSS timing error left after gnss.delay (a driver "
            "stamping on arrival: its latency's spread): the reported Cf, Cr std hold the bias it causes (~2 % per "
            "ms at 2 m/s; /diagnostics delay_sensitivity_per_ms); 0: off", 0.0, 1.0),

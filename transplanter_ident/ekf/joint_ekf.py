@@ -51,6 +51,8 @@ from transplanter_ident.ekf.layout import (
     O_S00,
     O_S01,
     O_S11,
+    O_SATURATION,
+    O_SATURATION_STD,
     O_STATUS,
     O_TIRE_BIAS_F,
     O_TIRE_BIAS_R,
@@ -90,6 +92,8 @@ from transplanter_ident.ekf.layout import (
     S_P0_VY,
     S_R_FROM_COVARIANCE,
     S_SATURATION_CORRECTION,
+    S_SATURATION_MEMORY,
+    S_SATURATION_PRIOR,
     X_OFFSET,
     X_PSI,
     X_THETA_F,
@@ -145,6 +149,11 @@ class Estimate:
     def delay_estimate(self) -> tuple[float, float]:
         """(s, std s) of the GNSS delay left out of gnss.delay, as the innovations show it (std 0: not yet)."""
         return self._pair(O_DELAY_ESTIMATE, O_DELAY_ESTIMATE_STD, 0.0)
+
+    @property
+    def saturation(self) -> tuple[float, float]:
+        """(a, std a): the tires' saturation the innovations show, 1 = a tire at ekf.min_friction (std 0: not yet)."""
+        return self._pair(O_SATURATION, O_SATURATION_STD, 0.0)
 
     @property
     def noise_factors(self) -> tuple[float, float]:
@@ -210,6 +219,8 @@ class FilterArrays:
         settings[S_ANTENNA_X] = config.vehicle.antenna_x
         settings[S_MAX_SLIP] = options.max_slip_angle
         settings[S_MAX_LAT_ACC] = options.max_lateral_acceleration
+        settings[S_SATURATION_PRIOR] = options.saturation_prior
+        settings[S_SATURATION_MEMORY] = options.saturation_memory
         settings[S_MIN_FRICTION] = options.min_friction
         settings[S_SATURATION_CORRECTION] = 1.0 if options.saturation_correction else 0.0
         settings[S_CUSUM_SCALE] = options.change_scale

@@ -32,7 +32,6 @@ import math
 
 from transplanter_ident.ekf.adaptation import (
     beyond_linear_range,
-    delay_estimate,
     detect_change,
     forget_motion_bias,
     known_to,
@@ -40,7 +39,9 @@ from transplanter_ident.ekf.adaptation import (
     noise_scale,
     propagate_delay_bias,
     propagate_tire_bias,
-    score_delay,
+    saturation_share,
+    score_model_errors,
+    signature_estimate,
 )
 from transplanter_ident.ekf.layout import (
     EULER,
@@ -49,6 +50,8 @@ from transplanter_ident.ekf.layout import (
     M_BIAS,
     M_CUSUM,
     M_DELAY_BIAS,
+    M_DELAY_INFORMATION,
+    M_DELAY_SCORE,
     M_DIVERGED,
     M_GATED,
     M_INITIALISED,
@@ -56,6 +59,8 @@ from transplanter_ident.ekf.layout import (
     M_NOISE_SPAN_SECOND,
     M_NOISE_SPAN_VY,
     M_NOISE_VY,
+    M_SATURATION_INFORMATION,
+    M_SATURATION_SCORE,
     M_T_PREV,
     N_MODEL,
     N_MOTION_HEADING,
@@ -80,6 +85,8 @@ from transplanter_ident.ekf.layout import (
     O_S00,
     O_S01,
     O_S11,
+    O_SATURATION,
+    O_SATURATION_STD,
     O_SLIP_F,
     O_SLIP_R,
     O_STATUS,
@@ -100,7 +107,6 @@ from transplanter_ident.ekf.layout import (
     S_P0_PSI,
     S_P0_R,
     S_P0_VY,
-    S_SATURATION_CORRECTION,
     V_BACKUP_MODEL,
     V_BACKUP_X,
     V_NEW_MODEL,
@@ -181,12 +187,14 @@ def make_kernels(heading):
         out[O_STATUS] = status.value
         out[O_VY] = x[X_VY]
         out[O_R] = x[X_R]
+        share, unpinned = saturation_share(memo, settings)  # of the bias at min_friction (adaptation.py)
         for k in range(2):  # front, rear; the std holds the saturation and delay biases (adaptation.py)
             c, dc = stiffness(x, settings, k)
             bias = memo[M_BIAS + nf + k]
             delay_bias = memo[M_DELAY_BIAS + nf + k] * settings[S_DELAY_UNCERTAINTY]
-            out[O_CF + k] = c + dc * bias if settings[S_SATURATION_CORRECTION] > 0.5 else c
-            out[O_CF_STD + k] = dc * math.sqrt(max(p[nf + k, nf + k], 0.0) + bias * bias + delay_bias * delay_bias)
+            out[O_CF + k] = c + dc * share * bias
+            out[O_CF_STD + k] = dc * math.sqrt(max(p[nf + k, nf + k], 0.0) + unpinned * bias * bias
+                                               + delay_bias * delay_bias)
             out[O_TIRE_BIAS_F + k] = dc * bias / c if c != 0.0 else 0.0
             out[O_DELAY_SENS_F + k] = -dc * memo[M_DELAY_BIAS + nf + k] / c if c != 0.0 else 0.0  # estimate - truth
         out[O_OFFSET] = x[nb]
@@ -195,7 +203,9 @@ def make_kernels(heading):
         out[O_CORRELATION] = p[nf, nr] / denominator if denominator > 0.0 else 0.0
         out[O_VY_MODEL] = vy_model
         out[O_R_MODEL] = r_model
-        out[O_DELAY_ESTIMATE], out[O_DELAY_ESTIMATE_STD] = delay_estimate(memo)
+        out[O_DELAY_ESTIMATE], out[O_DELAY_ESTIMATE_STD] = signature_estimate(memo, M_DELAY_SCORE, M_DELAY_INFORMATION)
+        out[O_SATURATION], out[O_SATURATION_STD] = signature_estimate(memo, M_SATURATION_SCORE,
+                                                                      M_SATURATION_INFORMATION)
         out[O_NOISE_SCALE_VY] = noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY)
         out[O_NOISE_SCALE_SECOND] = noise_scale(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND)
 
@@ -373,13 +383,13 @@ def make_kernels(heading):
         memo[M_T_PREV] = t
         memo[M_DIVERGED] = 0.0
         cf_now, cr_now = stiffness(x, settings, 0)[0], stiffness(x, settings, 1)[0]
-        propagate_tire_bias(memo, vehicle, settings, n, nd, h1, antenna_x, updated, out[O_SLIP_F], out[O_SLIP_R],
-                            cf_now, cr_now, log_state, ws)
+        t0, t1 = propagate_tire_bias(memo, vehicle, settings, n, nd, h1, antenna_x, updated, out[O_SLIP_F],
+                                     out[O_SLIP_R], cf_now, cr_now, log_state, ws)
         g0, g1 = propagate_delay_bias(memo, n, nd, h1, antenna_x, updated, steering_rate, ws)
         if updated:
             learn_noise_scales(memo, settings, dt, e0, e1, s00 - r0, s11 - r1, r0, r1, r_noise[Z_VY],
                                r_noise[Z_SECOND])
-            score_delay(memo, settings, dt, g0, g1, e0, e1, s00, s01, s11, det)
+            score_model_errors(memo, settings, dt, g0, g1, t0, t1, e0, e1, s00, s01, s11, det)
         write_outputs(x, p, memo, settings, status, r_model, vy_model, out)
         return status
 

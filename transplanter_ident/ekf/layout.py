@@ -40,7 +40,8 @@ S_MIN_FRICTION, S_SATURATION_CORRECTION = 26, 27  # adaptation.propagate_tire_bi
 S_NOISE_ADAPTATION, S_NOISE_MEMORY, S_MAX_NOISE_SCALE = 28, 29, 30  # adaptation.learn_noise_scales
 S_DELAY_UNCERTAINTY = 31  # s, 1-sigma of the GNSS delay left out of gnss.delay (adaptation.propagate_delay_bias)
 S_DELAY_MEMORY = 32  # s, time constant of adaptation.score_delay (ekf.identifiability_memory)
-N_SETTINGS = 33
+S_SATURATION_PRIOR, S_SATURATION_MEMORY = 33, 34  # adaptation.saturation_share, and its measure's memory (s)
+N_SETTINGS = 35
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6
@@ -52,7 +53,8 @@ O_NOISE_SCALE_VY, O_NOISE_SCALE_SECOND = 26, 27  # the factors on R the innovati
 O_NIS_CONFIGURED = 28  # the NIS against the configured R, without those factors (the validity's consistency test)
 O_DELAY_SENS_F, O_DELAY_SENS_R = 29, 30  # relative error of Cf, Cr per second of GNSS delay left out of gnss.delay
 O_DELAY_ESTIMATE, O_DELAY_ESTIMATE_STD = 31, 32  # s: that delay as the innovations show it (std 0: none yet)
-N_OUTPUTS = 33
+O_SATURATION, O_SATURATION_STD = 33, 34  # the tire's saturation as a fraction of one at min_friction (std 0: none)
+N_OUTPUTS = 35
 
 # memo vector
 M_T_PREV, M_INITIALISED, M_GATED, M_CUSUM, M_ADAPT_UNTIL, M_DIVERGED = 0, 1, 2, 3, 4, 5
@@ -63,7 +65,9 @@ M_NOISE_VY, M_NOISE_SECOND, M_NOISE_SPAN_VY, M_NOISE_SPAN_SECOND = 12, 13, 14, 1
 M_DELAY_BIAS = 16  # memo[M_DELAY_BIAS + i]: the bias of state i per second of unconfigured GNSS delay
 # the online measure of that delay (adaptation.score_delay): score, information, seconds of data seen
 M_DELAY_SCORE, M_DELAY_INFORMATION, M_DELAY_SETTLED = 22, 23, 24
-N_MEMO = 25
+# the same measure of the tire's saturation, in units of a tire at min_friction (adaptation.score_signature)
+M_SATURATION_SCORE, M_SATURATION_INFORMATION = 25, 26
+N_MEMO = 27
 
 # the open-loop model's state [vy, r, psi]
 N_MODEL = 3

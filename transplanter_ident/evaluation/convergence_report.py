@@ -34,6 +34,7 @@ def convergence_report(node: str, estimate: Estimate | None, updates: int, limit
               ("weak_direction", f"{known.weak_direction[0]:+.3f} {known.weak_direction[1]:+.3f}"),
               ("weak_rel_std", f"{known.weak_std:.4g}"), ("identifiability", known.describe()),
               ("tire_saturation_bias", "{:.4f} {:.4f}".format(*estimate.tire_bias)),
+              ("tire_saturation", "{:.3f} {:.3f}".format(*estimate.saturation)),
               ("noise_factors", "{:.3f} {:.3f}".format(*estimate.noise_factors)),
               ("delay_sensitivity_per_ms", "{:+.4f} {:+.4f}".format(*(1.0e-3 * v for v in estimate.delay_sensitivity))),
               ("delay_estimate_ms", "{:+.1f} {:.1f}".format(*(1.0e3 * v for v in estimate.delay_estimate))))
