@@ -17,7 +17,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 from drives import Run, median_and_worst, pooled_coverage, run_drive, sine_drive  # noqa: E402
 
 from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions  # noqa: E402
-from transplanter_ident.sim.signals import StiffnessSchedule, step_steering  # noqa: E402
+from transplanter_ident.sim.signals import StiffnessSchedule, sine_steering, step_steering  # noqa: E402
 from transplanter_ident.sim.simulator import simulate  # noqa: E402
 
 SEEDS = range(10)
@@ -63,6 +63,10 @@ def main() -> int:
           f"{sum(r.alarms_between(0.0, math.inf) for r in clean)}")
     wet = drives(tire="saturating", friction=0.3)
     print("wet field (mu 0.3, tanh tire):", errors(wet), coverage(wet))
+    beyond = drives(tire="saturating", friction=0.3, speed=3.0)
+    print("wet field at 3 m/s (slip beyond the linear range):", errors(beyond), coverage(beyond))
+    sharp = drives(tire="saturating", friction=0.3, steering=sine_steering(math.radians(25.0), 6.0))
+    print("wet field, +-25 deg:", errors(sharp), coverage(sharp))
     step = drives(**STEP)
     print("paper step, 1 m/s, 20 deg held:", errors(step), coverage(step))
     for rate in (5.0, 10.0, 20.0, 100.0):

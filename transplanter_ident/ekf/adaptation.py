@@ -290,8 +290,8 @@ def signature_estimate(memo, score_slot, information_slot):
 
 
 #: relative error of the first-order tire bias as a correction: told the friction (``saturation_correction``)
-#: on mu 0.3, it leaves ~0 of the bias at 15 deg steer (35 % of the friction limit) and ~25 % at 25 deg,
-#: and the measured share is ~1.6 at 3 m/s (bench/robustness_sweep.py drives); the std holds half of it
+#: on mu 0.3, it leaves ~0 of the bias at +-15 deg steer (35 % of the friction limit) and ~25 % at +-25 deg,
+#: and the measured share is ~1.6 at 3 m/s (bench/real_sensors.py's wet drives); the std holds half of it
 FIRST_ORDER_ERROR = 0.5
 
 
