@@ -300,11 +300,11 @@ def saturation_share(memo, settings):
     """(share, unpinned): Cf, Cr take share x their bias at ``min_friction``; the std holds unpinned x it^2.
 
     share = the posterior's mode of the saturation a (1: a tire at ``min_friction``, 0: a linear tire),
-    with the prior N(0, ``saturation_prior``^2) bounded to a >= 0 (a tire never gives more than C alpha), from :func:`score_signature` on the signature of
-    :func:`propagate_tire_bias`; unpinned = its posterior variance + (1 - w)^2, w the share of the
-    posterior precision the data give (with no data the std holds the whole bias at ``min_friction``, as
-    with the measure off), + (FIRST_ORDER_ERROR x share)^2. With ``saturation_correction`` (the field's
-    friction known): (1, 1).
+    with the prior N(0, ``saturation_prior``^2) bounded to a >= 0 (a tire never gives more than C alpha),
+    from :func:`score_signature` on the signature of :func:`propagate_tire_bias`. unpinned = what is left
+    to a tire at ``min_friction`` (1 - share)^2, if positive, + the posterior variance + (FIRST_ORDER_ERROR
+    x share)^2: the band never leaves out the bias of the most slippery surface expected, as with the
+    measure off (0, 1). With ``saturation_correction`` (the field's friction known): (1, 1).
     """
     if settings[S_SATURATION_CORRECTION] > 0.5:
         return 1.0, 1.0
@@ -313,6 +313,6 @@ def saturation_share(memo, settings):
     if not (prior > 0.0 and information > 0.0):
         return 0.0, 1.0
     variance = 1.0 / (information + 1.0 / (prior * prior))
-    weight = information * variance
     share = max(memo[M_SATURATION_SCORE] * variance, 0.0)  # the mode under a >= 0: never more force than C alpha
-    return share, variance + (1.0 - weight) * (1.0 - weight) + (FIRST_ORDER_ERROR * share) ** 2
+    left = max(1.0 - share, 0.0)
+    return share, left * left + variance + (FIRST_ORDER_ERROR * share) ** 2
