@@ -271,13 +271,13 @@ def score_signature(memo, score_slot, information_slot, memory, dt, g0, g1, e0, 
 
 
 @inline_kernel
-def score_model_errors(memo, settings, dt, g0, g1, t0, t1, e0, e1, s00, s01, s11, det):
-    """One accepted epoch's innovations e against the signatures of a GNSS delay (g) and of the tire (t)."""
+def score_model_errors(memo, settings, dt, g0, g1, tire0, tire1, e0, e1, s00, s01, s11, det):
+    """One accepted epoch's innovations e against the signatures of a GNSS delay (g) and of a saturating tire."""
     memo[M_DELAY_SETTLED] += dt
     score_signature(memo, M_DELAY_SCORE, M_DELAY_INFORMATION, settings[S_DELAY_MEMORY], dt, g0, g1, e0, e1, s00, s01,
                     s11, det)
-    score_signature(memo, M_SATURATION_SCORE, M_SATURATION_INFORMATION, settings[S_SATURATION_MEMORY], dt, t0, t1,
-                    e0, e1, s00, s01, s11, det)
+    score_signature(memo, M_SATURATION_SCORE, M_SATURATION_INFORMATION, settings[S_SATURATION_MEMORY], dt, tire0,
+                    tire1, e0, e1, s00, s01, s11, det)
 
 
 @inline_kernel

@@ -284,7 +284,8 @@ def make_kernels(heading):
         5. Gate; after max_gated gated epochs in a row, re-initialise the motion states.
         6. Joseph update (motion only outside the linear tire range); clamp the stiffness.
         7. Roll back if anything became non-finite; re-initialise if that lasts (:mod:`.recovery`); else
-           propagate the tire's and the delay's biases, learn R and score the delay from the innovations.
+           propagate the tire's and the delay's biases, learn R, and score the delay and the tires' saturation
+           from the innovations (the saturation's share corrects Cf, Cr in the outputs).
         """
         out[:] = 0.0
         # 1.
@@ -383,13 +384,13 @@ def make_kernels(heading):
         memo[M_T_PREV] = t
         memo[M_DIVERGED] = 0.0
         cf_now, cr_now = stiffness(x, settings, 0)[0], stiffness(x, settings, 1)[0]
-        t0, t1 = propagate_tire_bias(memo, vehicle, settings, n, nd, h1, antenna_x, updated, out[O_SLIP_F],
-                                     out[O_SLIP_R], cf_now, cr_now, log_state, ws)
+        tire0, tire1 = propagate_tire_bias(memo, vehicle, settings, n, nd, h1, antenna_x, updated, out[O_SLIP_F],
+                                           out[O_SLIP_R], cf_now, cr_now, log_state, ws)
         g0, g1 = propagate_delay_bias(memo, n, nd, h1, antenna_x, updated, steering_rate, ws)
         if updated:
             learn_noise_scales(memo, settings, dt, e0, e1, s00 - r0, s11 - r1, r0, r1, r_noise[Z_VY],
                                r_noise[Z_SECOND])
-            score_model_errors(memo, settings, dt, g0, g1, t0, t1, e0, e1, s00, s01, s11, det)
+            score_model_errors(memo, settings, dt, g0, g1, tire0, tire1, e0, e1, s00, s01, s11, det)
         write_outputs(x, p, memo, settings, status, r_model, vy_model, out)
         return status
 

@@ -39,7 +39,7 @@ S_P0_THETA_F, S_P0_THETA_R, S_P0_OFFSET = 23, 24, 25  # the parameter states' P0
 S_MIN_FRICTION, S_SATURATION_CORRECTION = 26, 27  # adaptation.propagate_tire_bias
 S_NOISE_ADAPTATION, S_NOISE_MEMORY, S_MAX_NOISE_SCALE = 28, 29, 30  # adaptation.learn_noise_scales
 S_DELAY_UNCERTAINTY = 31  # s, 1-sigma of the GNSS delay left out of gnss.delay (adaptation.propagate_delay_bias)
-S_DELAY_MEMORY = 32  # s, time constant of adaptation.score_delay (ekf.identifiability_memory)
+S_DELAY_MEMORY = 32  # s, time constant of the delay's adaptation.score_signature (ekf.identifiability_memory)
 S_SATURATION_PRIOR, S_SATURATION_MEMORY = 33, 34  # adaptation.saturation_share, and its measure's memory (s)
 N_SETTINGS = 35
 
@@ -63,7 +63,7 @@ M_BIAS = 6  # memo[M_BIAS + i]: the first-order bias of state i from the tire's 
 # variance to R, for vy and for the second measurement, and the weighted seconds of data in each
 M_NOISE_VY, M_NOISE_SECOND, M_NOISE_SPAN_VY, M_NOISE_SPAN_SECOND = 12, 13, 14, 15
 M_DELAY_BIAS = 16  # memo[M_DELAY_BIAS + i]: the bias of state i per second of unconfigured GNSS delay
-# the online measure of that delay (adaptation.score_delay): score, information, seconds of data seen
+# the online measure of that delay (adaptation.score_signature): score, information, seconds of data seen (both measures)
 M_DELAY_SCORE, M_DELAY_INFORMATION, M_DELAY_SETTLED = 22, 23, 24
 # the same measure of the tire's saturation, in units of a tire at min_friction (adaptation.score_signature)
 M_SATURATION_SCORE, M_SATURATION_INFORMATION = 25, 26
