@@ -23,6 +23,7 @@ from drives import TRUE_CF, TRUE_CR, Run, median_and_worst, pooled_coverage, run
 from test_validity import epochs_of, validity
 
 from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions
+from transplanter_ident.ekf.joint_ekf import Estimate
 from transplanter_ident.ekf.layout import (
     O_CF,
     O_CF_STD,
@@ -34,6 +35,7 @@ from transplanter_ident.ekf.layout import (
     O_TIRE_BIAS_F,
     O_TIRE_BIAS_R,
 )
+from transplanter_ident.evaluation.convergence_report import convergence_report
 from transplanter_ident.sim.signals import StiffnessSchedule, sine_steering
 from transplanter_ident.sim.simulator import SensorNoise, simulate
 
@@ -195,3 +197,13 @@ def test_a_wet_field_is_not_valid_and_wrong(steer_deg: float) -> None:
         kept += int(valid.sum())
         missed += int((valid & ~(front & rear)).sum())
     assert missed <= 0.075 * max(kept, 1), (missed, kept)
+
+
+def test_the_measure_reaches_diagnostics() -> None:
+    """/diagnostics "convergence" shows a and its std (`tire_saturation`) as the last estimate holds them."""
+    run = runs("wet 3 m/s")[0]
+    estimate = Estimate.from_row(float(run.t[-1]), run.outputs[-1])
+    a, a_std = estimate.saturation
+    assert a_std > 0.0 and a == run.outputs[-1, O_SATURATION]
+    values = dict(convergence_report("estimator", estimate, updates=len(run.t), limit=0.05).values)
+    assert values["tire_saturation"] == f"{a:.3f} {a_std:.3f}"
