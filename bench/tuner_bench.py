@@ -15,13 +15,20 @@ Two conditions, ``--runs`` each (default 3), median reported:
 
 Target (issue "IPSO tuner"): wall <= 15 s including start-up and the bag read.
 
+The same run times the C yardstick (``../shared/bench/ekf_reference.c``, exact model, as in
+``ekf_bench.py``) and prints each wall time as a ratio to the C doing the tuner's filter steps
+(evaluations x epochs) on one core: the machine's speed divides out of that ratio, which the
+absolute target depends on.
+
 Run: ``python bench/tuner_bench.py [--runs N]``; ``bench/run.py`` calls :func:`main`.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
+import re
 import statistics
 import subprocess
 import sys
@@ -30,8 +37,10 @@ import time
 from pathlib import Path
 
 from bench_util import ROOT, cached_bag, child_env, command, default_cache  # bench/ is on sys.path
+from ekf_bench import C_RUNS, build_reference, time_reference
 
 BAG_VERSION = "v1"
+BAG_EPOCHS = 3000
 TARGET_WALL = 15.0
 
 
@@ -69,11 +78,15 @@ def main(argv: list[str] | None = None) -> int:
             fresh.mkdir()
             cold.append(run_tuner(bag, work / f"cold{i}.yaml", i, child_env(NUMBA_CACHE_DIR=str(fresh))))
             warm.append(run_tuner(bag, work / f"warm{i}.yaml", i, child_env()))
+        binary = build_reference(work)
+        c_ns = statistics.median(time_reference(binary, "exact", BAG_EPOCHS, C_RUNS["exact"]) for _ in range(3))
     summary = next((line for line in warm[-1][1].splitlines() if line.startswith("ipso:")), "")
+    match = re.search(r"\((\d+) evaluations", summary)
+    c_wall = int(match.group(1)) * BAG_EPOCHS * c_ns * 1e-9 if match else math.nan
 
     print(f"\ntuner end-to-end benchmark: {bag.name} (3000 epochs), IPSO F = 20, k_max = 40, exact/log/heading; "
           f"median of {args.runs} runs (Python {sys.version.split()[0]}, {os.cpu_count()} CPUs)")
-    head = f"{'condition':<46}{'wall [s]':>10}{'min':>8}{'max':>8}{'target':>10}"
+    head = f"{'condition':<46}{'wall [s]':>10}{'min':>8}{'max':>8}{'target':>10}{'/ C':>8}"
     print(head)
     print("-" * len(head))
     missed = False
@@ -83,9 +96,12 @@ def main(argv: list[str] | None = None) -> int:
         median = statistics.median(walls)
         ok = median <= TARGET_WALL
         missed |= not ok
-        print(f"{label:<46}{median:>10.2f}{min(walls):>8.2f}{max(walls):>8.2f}{'met' if ok else 'MISSED':>10}")
+        print(f"{label:<46}{median:>10.2f}{min(walls):>8.2f}{max(walls):>8.2f}{'met' if ok else 'MISSED':>10}"
+              f"{median / c_wall:>8.2f}")
     print("-" * len(head))
     print(f"target: wall <= {TARGET_WALL:g} s including start-up and the bag read; last run: {summary}")
+    print(f"/ C: wall over the C yardstick's time for the same filter steps on one core ({c_ns:.0f} ns/step, exact "
+          f"model, median of 3: {c_wall:.2f} s for the last run's evaluations x {BAG_EPOCHS} epochs)")
     return 1 if args.strict and missed else 0
 
 
