@@ -8,7 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams, VehicleParams
+from transplanter_ident.config.paper import PAPER_NOISE, PAPER_OPTIONS
+from transplanter_ident.config.parameters import EstimatorConfig, VehicleParams
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
 from transplanter_ident.sim.simulator import SensorNoise, SimConfig, SimResult, simulate
@@ -64,20 +65,8 @@ def simulate_epochs(config: SimConfig) -> tuple[SimResult, EpochArrays]:
 
 
 def paper_config(vehicle: VehicleParams = TABLE1_VEHICLE) -> EstimatorConfig:
-    """The paper's filter: z = [vy, r], forward Euler, linear stiffness, Cf = Cr = 1000 N/rad to start."""
-    return EstimatorConfig(
-        vehicle=vehicle,
-        options=FilterOptions(discretization="euler", stiffness_state="linear", measurement="yaw_rate",
-                              process_noise_units="per_step", estimate_steering_offset=False,
-                              linear_range_check=False, change_detection=False, noise_adaptation=False),
-        noise=NoiseParams(
-            process_noise=(1.0e-4, 1.0e-4, 100.0, 100.0),
-            measurement_noise=(4.0e-4, 1.0e-3),
-            initial_stiffness=(1000.0, 1000.0),
-            initial_covariance=(1.0e-2, 1.0e-2, 1.0e6, 1.0e6),
-        ),
-    )
-
+    """The paper's filter: z = [vy, r], forward Euler, linear stiffness, Cf = Cr = 1000 N/rad to start (the demo's)."""
+    return EstimatorConfig(vehicle=vehicle, options=PAPER_OPTIONS, noise=PAPER_NOISE)
 
 
 def command(name: str) -> list[str]:

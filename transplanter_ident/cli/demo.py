@@ -35,7 +35,8 @@ from transplanter_ident.bags.samples import ensure_bag
 from transplanter_ident.cli.plots import plot_convergence, plot_model_output, plot_stiffness, require_pyplot
 from transplanter_ident.cli.tuner import progress_printer
 from transplanter_ident.cli.util import CliError, cli_main
-from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams, ValiditySettings
+from transplanter_ident.config.paper import PAPER_NOISE, PAPER_OPTIONS
+from transplanter_ident.config.parameters import EstimatorConfig, ValiditySettings
 from transplanter_ident.config.params_file import EstimatorParams, load_params
 from transplanter_ident.config.params_writer import write_params_yaml
 from transplanter_ident.ekf.joint_ekf import run_sequence
@@ -59,12 +60,7 @@ ROOT = Path(__file__).resolve().parents[2]  # the checkout: its bags/ (an instal
 TUNE_BAG = "step20-ccw"
 REPLAY_BAGS = ("step20-ccw", "step30-cw")
 OBJECTIVE_BAG = "sine"
-#: the paper's filter (eq. 10, linear stiffness, z = [vy, r]) with a trial-and-error Q/R
-PAPER_OPTIONS = FilterOptions(discretization="euler", stiffness_state="linear", measurement="yaw_rate",
-                              process_noise_units="per_step", estimate_steering_offset=False,
-                              linear_range_check=False, change_detection=False, noise_adaptation=False)
-PAPER_NOISE = NoiseParams(process_noise=(1.0e-4, 1.0e-4, 100.0, 100.0), measurement_noise=(4.0e-4, 1.0e-3),
-                          initial_covariance=(1.0e-2, 1.0e-2, 1.0e6, 1.0e6))
+
 
 
 @dataclass(frozen=True)

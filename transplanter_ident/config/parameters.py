@@ -82,6 +82,8 @@ class FilterOptions:
     identifiability_min_steering: float = 0.05  # rad: re-evaluated only while the wheels are turned this much
     identifiability_period: float = 1.0  # s of data between two evaluations of the information
     max_identifiable_rel_std: float = 0.10  # Cramer-Rao 1-sigma (relative) above which a direction is not pinned
+    relinearization_window: float = 60.0  # s of stiffness updates at the start with re-linearised passes; 0 off
+    relinearization_threshold: float = 0.1  # |d ln C| since the pass began that starts a new one
 
     def __post_init__(self) -> None:
         _check_choice("ekf.discretization", self.discretization, DISCRETIZATIONS)
@@ -102,7 +104,10 @@ class FilterOptions:
                                             "identifiability_memory", "identifiability_period",
                                             "max_identifiable_rel_std"), non_negative=("identifiability_min_steering",
                                                                                    "delay_uncertainty",
-                                                                                   "saturation_prior"))
+                                                                                   "saturation_prior",
+                                                                                   "relinearization_window"))
+        if not (math.isfinite(self.relinearization_threshold) and self.relinearization_threshold > 0.0):
+            raise ValueError(f"ekf.relinearization_threshold must be > 0, got {self.relinearization_threshold!r}")
         if self.identifiability_max_epochs < 2:
             raise ValueError(f"ekf.identifiability_max_epochs must be >= 2, got {self.identifiability_max_epochs!r}")
         if not (math.isfinite(self.max_noise_scale) and self.max_noise_scale >= 1.0):

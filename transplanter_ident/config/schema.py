@@ -261,6 +261,14 @@ SCHEMA: tuple[Param, ...] = (
            "between)", 0.01, 60.0),
     _float("ekf.max_identifiable_rel_std", 0.10, "", "relative Cramer-Rao 1-sigma above which the recent data "
            "do not pin a direction of (ln Cf, ln Cr)", 1.0e-4, 10.0),
+    # re-linearised passes at the start (ekf/relinearization.py)
+    _float("ekf.relinearization_window", 60.0, "s", "for this many seconds of stiffness updates after the start, "
+           "every 5 s of them, when Cf or Cr has moved more than ekf.relinearization_threshold from where the "
+           "filter's pass started, it filters the epochs so far again from the stiffness and offset it holds "
+           "(its first steps were linearised at the initial stiffness); 0: one pass, the paper's filter",
+           0.0, 3600.0),
+    _float("ekf.relinearization_threshold", 0.1, "", "relative move of Cf or Cr (|d ln C|) since the pass began "
+           "that starts a new pass", 1.0e-3, 10.0),
     # the learned state across restarts (ekf/persistence.py)
     _str("persistence.file", "$ROS_HOME/transplanter_ident/{node}.yaml", "where the learned stiffness, offset and "
          "covariance are kept across restarts ($ROS_HOME: ~/.ros when unset; {node}: the node name); empty: off"),

@@ -2,20 +2,23 @@
 
 :class:`JointEKF` (the node) and :func:`run_sequence` / :func:`sequence_objective` (replay,
 tuner) call the same compiled step of :mod:`.kernels` (paper eqs. 9-14, 21), so online and
-offline numbers are identical. :class:`FilterArrays` translates an
+offline numbers are identical; both take the same re-linearised passes over the start
+(:mod:`.relinearization`). :class:`FilterArrays` translates an
 :class:`~transplanter_ident.config.parameters.EstimatorConfig` into the kernels' arrays and
-:class:`Estimate` reads one output row back.
+:class:`~transplanter_ident.ekf.estimate.Estimate` reads one output row back.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
 from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams
 from transplanter_ident.ekf.entries import ekf_step, objective_kernel, run_kernel
+from transplanter_ident.ekf.estimate import Estimate
 from transplanter_ident.ekf.identifiability import IdentifiabilityGuard
 from transplanter_ident.ekf.layout import (
     EPOCH_COLUMNS,
@@ -29,35 +32,6 @@ from transplanter_ident.ekf.layout import (
     N_OUTPUTS,
     N_SETTINGS,
     NLL,
-    O_CF,
-    O_CF_STD,
-    O_CHANGE,
-    O_CORRELATION,
-    O_CR,
-    O_CR_STD,
-    O_DELAY_ESTIMATE,
-    O_DELAY_ESTIMATE_STD,
-    O_DELAY_SENS_F,
-    O_DELAY_SENS_R,
-    O_E0,
-    O_E1,
-    O_NIS,
-    O_NOISE_SCALE_SECOND,
-    O_NOISE_SCALE_VY,
-    O_OFFSET,
-    O_OFFSET_STD,
-    O_R,
-    O_R_MODEL,
-    O_S00,
-    O_S01,
-    O_S11,
-    O_SATURATION,
-    O_SATURATION_STD,
-    O_STATUS,
-    O_TIRE_BIAS_F,
-    O_TIRE_BIAS_R,
-    O_VY,
-    O_VY_MODEL,
     PARAMETER_STATES,
     S_ANTENNA_X,
     S_CHANGE_DETECTION,
@@ -98,91 +72,17 @@ from transplanter_ident.ekf.layout import (
     X_PSI,
     X_THETA_F,
     X_THETA_R,
-    StepStatus,
 )
 from transplanter_ident.ekf.model import vehicle_array, work_buffer
 from transplanter_ident.ekf.persistence import LearnedState
+from transplanter_ident.ekf.relinearization import (
+    FilterState,
+    RelinearizationSchedule,
+    run_relinearized,
+    schedule_for,
+)
 from transplanter_ident.ekf.sequence import epoch_measurement_noise
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
-
-
-@dataclass(frozen=True)
-class Estimate:
-    """What one epoch produced (Cf, Cr in N/rad per tire)."""
-
-    t: float
-    status: StepStatus
-    lateral_velocity: float
-    yaw_rate: float
-    cornering_stiffness_front: float
-    cornering_stiffness_rear: float
-    cornering_stiffness_front_std: float
-    cornering_stiffness_rear_std: float
-    lateral_velocity_model: float
-    yaw_rate_model: float
-    innovation: tuple[float, float]
-    innovation_covariance: tuple[float, float, float]  # S00, S01, S11
-    normalized_innovation_squared: float
-    steering_offset: float = 0.0  # rad, wheel = sensor - offset
-    steering_offset_std: float = 0.0
-    stiffness_correlation: float = 0.0  # of the two stiffness states (ln Cf, ln Cr in log mode)
-    change_detected: bool = False  # the surface-change test fired at this epoch
-    row: tuple[float, ...] = ()  # the whole kernel output row (layout.O_*)
-
-    def _pair(self, first: int, second: int, default: float) -> tuple[float, float]:
-        """Two slots of the output row (layout.O_*); ``default`` for a row from before they existed."""
-        if len(self.row) <= max(first, second):
-            return (default, default)
-        return (self.row[first], self.row[second])
-
-    @property
-    def tire_bias(self) -> tuple[float, float]:
-        """Relative bias of Cf, Cr on a tire saturating at ekf.min_friction (adaptation.py; held in the std)."""
-        return self._pair(O_TIRE_BIAS_F, O_TIRE_BIAS_R, 0.0)
-
-    @property
-    def delay_sensitivity(self) -> tuple[float, float]:
-        """Relative error of Cf, Cr per second of GNSS delay left out of gnss.delay (adaptation.py; first order)."""
-        return self._pair(O_DELAY_SENS_F, O_DELAY_SENS_R, 0.0)
-
-    @property
-    def delay_estimate(self) -> tuple[float, float]:
-        """(s, std s) of the GNSS delay left out of gnss.delay, as the innovations show it (std 0: not yet)."""
-        return self._pair(O_DELAY_ESTIMATE, O_DELAY_ESTIMATE_STD, 0.0)
-
-    @property
-    def saturation(self) -> tuple[float, float]:
-        """(a, std a): the tires' saturation the innovations show, 1 = a tire at ekf.min_friction (std 0: not yet)."""
-        return self._pair(O_SATURATION, O_SATURATION_STD, 0.0)
-
-    @property
-    def noise_factors(self) -> tuple[float, float]:
-        """The factors on R (vy, then psi or r) the innovations have shown (adaptation.noise_scale; 1: none)."""
-        return self._pair(O_NOISE_SCALE_VY, O_NOISE_SCALE_SECOND, 1.0)
-
-    @classmethod
-    def from_row(cls, t: float, row: np.ndarray) -> Estimate:
-        """Build from one kernel output row."""
-        return cls(
-            t=t,
-            status=StepStatus(int(row[O_STATUS])),
-            lateral_velocity=float(row[O_VY]),
-            yaw_rate=float(row[O_R]),
-            cornering_stiffness_front=float(row[O_CF]),
-            cornering_stiffness_rear=float(row[O_CR]),
-            cornering_stiffness_front_std=float(row[O_CF_STD]),
-            cornering_stiffness_rear_std=float(row[O_CR_STD]),
-            lateral_velocity_model=float(row[O_VY_MODEL]),
-            yaw_rate_model=float(row[O_R_MODEL]),
-            innovation=(float(row[O_E0]), float(row[O_E1])),
-            innovation_covariance=(float(row[O_S00]), float(row[O_S01]), float(row[O_S11])),
-            normalized_innovation_squared=float(row[O_NIS]),
-            steering_offset=float(row[O_OFFSET]),
-            steering_offset_std=float(row[O_OFFSET_STD]),
-            stiffness_correlation=float(row[O_CORRELATION]),
-            change_detected=bool(row[O_CHANGE] > 0.5),
-            row=tuple(float(v) for v in row),
-        )
 
 
 @dataclass(frozen=True)
@@ -288,6 +188,8 @@ class JointEKF:
         self._model = np.zeros(N_MODEL)
         self._memo = np.zeros(N_MEMO)
         self._guard.reset()
+        self._schedule = relinearization_schedule(self._config, self._arrays)
+        self._taken: list[np.ndarray] = []  # the epochs since the start, while a new pass may begin
 
     @property
     def recent_information(self) -> np.ndarray:
@@ -324,6 +226,8 @@ class JointEKF:
         index = np.ix_(PARAMETER_STATES, PARAMETER_STATES)
         self.covariance[index] = block
         self._guard.trust_restored()
+        self._schedule.close()  # a learned state is linearised where it was learned
+        self._taken = []
 
     def step(self, epoch: Epoch) -> Estimate:
         """Filter one epoch (eq. 12) and return the estimate."""
@@ -336,8 +240,27 @@ class JointEKF:
         ekf_step(self.state, self.covariance, self._model, self._memo, a.vehicle, a.settings,
                  a.process_noise, r_noise, epoch.t, epoch.speed, epoch.steering,
                  epoch.steering_rate, epoch.antenna_lateral_velocity, epoch.heading, epoch.yaw_rate, self._ws, self._out)
-        self._guard.step(epoch_row(epoch), self._out)
+        row = epoch_row(epoch)
+        self._guard.step(row, self._out)
+        self._relinearize(row)
         return Estimate.from_row(epoch.t, self._out)
+
+    @property
+    def relinearized_passes(self) -> tuple[int, int]:
+        """(tried, kept): the new passes over the start so far (ekf/relinearization.py)."""
+        return self._schedule.passes - 1, self._schedule.kept
+
+    def _relinearize(self, row: np.ndarray) -> None:
+        """After an epoch: the pass to go on from (ekf/relinearization.py, as run_sequence)."""
+        if not self._schedule.open:
+            self._taken = []
+            return
+        self._taken.append(row)
+        a = self._arrays
+        state = FilterState(self.state, self.covariance, self._model, self._memo)
+        state = self._schedule.step(np.array(self._taken), self._out, state, a.initial_state,
+                                    a.initial_covariance, partial(_pass_objective, a))
+        self.state, self.covariance, self._model, self._memo = state.x, state.p, state.model, state.memo
 
 
 def kernel_input(epochs: EpochArrays) -> np.ndarray:
@@ -350,10 +273,28 @@ def run_sequence(config: EstimatorConfig, epochs: EpochArrays) -> np.ndarray:
     a = FilterArrays.from_config(config)
     outputs = np.zeros((len(epochs), N_OUTPUTS))
     rows = kernel_input(epochs)
-    run_kernel(rows, a.initial_state.copy(), a.initial_covariance.copy(), np.zeros(N_MODEL),
-               np.zeros(N_MEMO), a.vehicle, a.settings, a.process_noise, a.measurement_noise, outputs)
+
+    def run(part, x, p, model, memo, out):  # noqa: ANN001, ANN202 - the compiled filter in place
+        run_kernel(part, x, p, model, memo, a.vehicle, a.settings, a.process_noise, a.measurement_noise, out)
+
+    run_relinearized(rows, a.initial_state, a.initial_covariance, relinearization_schedule(config, a), run,
+                     partial(_pass_objective, a), outputs)
     identifiability_guard(config, a).run(rows, outputs)
     return outputs
+
+
+def _pass_objective(a: FilterArrays, rows: np.ndarray, x: np.ndarray, p: np.ndarray, model: np.ndarray,
+                    memo: np.ndarray) -> float:
+    """The mean NLL of a pass over ``rows`` from (x, p, model, memo), in place (relinearization.Objective)."""
+    return float(objective_kernel(rows, x, p, model, memo, a.vehicle, a.settings, a.process_noise,
+                                  a.measurement_noise, NLL))
+
+
+def relinearization_schedule(config: EstimatorConfig, arrays: FilterArrays) -> RelinearizationSchedule:
+    """The start-up's re-linearised passes (ekf/relinearization.py) for this configuration."""
+    options = config.options
+    return schedule_for(options.relinearization_window, options.relinearization_threshold,
+                        options.stiffness_state == "log", arrays.initial_state)
 
 
 def identifiability_guard(config: EstimatorConfig, arrays: FilterArrays) -> IdentifiabilityGuard:

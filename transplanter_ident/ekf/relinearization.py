@@ -1,0 +1,184 @@
+"""Re-linearisation at the start: the first epochs filtered again from the stiffness they led to.
+
+The EKF (paper eqs. 9-14) linearises each step at the estimate it holds. Started at the
+configured stiffness (1000 N/rad, the paper's, ~8x below a real tire), its first steps are
+linearised far from the truth, and with the steering offset as a state their information
+narrows the covariance along directions the wrong Jacobians chose: on gentle steering the
+estimate then creeps towards the truth for minutes (±5° sine at 2 m/s, noise-free: Cf -11 % at
+30 s, -6 % at 60 s; with a 1° offset -31 % and -20 %) while its band says ~5 %.
+
+So during the first ``ekf.relinearization_window`` s of stiffness updates, every
+:data:`CHECK_PERIOD` s of them, when Cf or Cr has moved more than
+``ekf.relinearization_threshold`` (relative, |Δ ln C|) and :data:`MOVE_SIGMAS` std from where the
+filter's pass started, a new pass is tried: the configured state and covariance with the
+parameter states (θf, θr, b) held now, over the epochs since the start. It replaces the pass in
+force only if its innovations make those epochs more likely (the mean Gaussian NLL of
+eq. 21's innovations, :data:`~transplanter_ident.ekf.layout.NLL`): a Gauss-Newton step of the
+whole start-up, as an iterated EKF takes for one update, kept only when it is a step downhill.
+The outputs already published stay; the state goes on from the pass in force. Window 0: the
+filter of the paper (one pass).
+
+:class:`RelinearizationSchedule` decides (:meth:`~RelinearizationSchedule.step`, after each
+epoch); :func:`run_relinearized` is the offline run and
+:class:`~transplanter_ident.ekf.joint_ekf.JointEKF` the node's, so online and offline outputs are
+identical. The tuner's objective runs one pass (its kernel).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from transplanter_ident.ekf.layout import (
+    M_NOISE_SPAN_SECOND,
+    M_NOISE_VY,
+    N_MEMO,
+    N_MODEL,
+    O_DT,
+    O_STATUS,
+    PARAMETER_STATES,
+    X_THETA_F,
+    X_THETA_R,
+    StepStatus,
+)
+
+#: s of stiffness updates between two checks
+CHECK_PERIOD = 5.0
+CHECK_PERIOD_US = round(CHECK_PERIOD * 1e6)
+#: a move smaller than this many of the current std tries no new pass (it is the data's noise)
+MOVE_SIGMAS = 3.0
+#: the memo slots of the noise the innovations show (adaptation.learn_noise_scales)
+SENSOR_NOISE = slice(M_NOISE_VY, M_NOISE_SPAN_SECOND + 1)
+#: epochs kept for a new pass at most (a start-up spent standing still ends the window)
+MAX_BUFFER = 20000
+
+#: the filter over rows from (x, p, model, memo), in place, returning the mean NLL of its innovations
+Objective = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], float]
+
+
+def log_stiffness(state: np.ndarray, log_state: bool) -> tuple[float, float]:
+    """(ln Cf, ln Cr) of a state vector (θ is ln C in log mode, C in linear mode)."""
+    front, rear = float(state[X_THETA_F]), float(state[X_THETA_R])
+    if log_state:
+        return front, rear
+    return (math.log(front) if front > 0.0 else -math.inf), (math.log(rear) if rear > 0.0 else -math.inf)
+
+
+@dataclass
+class FilterState:
+    """Everything the compiled step carries from one epoch to the next."""
+
+    x: np.ndarray
+    p: np.ndarray
+    model: np.ndarray = field(default_factory=lambda: np.zeros(N_MODEL))
+    memo: np.ndarray = field(default_factory=lambda: np.zeros(N_MEMO))
+
+    @classmethod
+    def start(cls, x0: np.ndarray, p0: np.ndarray) -> FilterState:
+        """A filter's start at (x0, P0) (copies)."""
+        return cls(x0.copy(), p0.copy())
+
+
+@dataclass
+class RelinearizationSchedule:
+    """When to try a new pass, and where the pass in force started.
+
+    ``window`` s of stiffness updates (0: never), ``threshold`` relative move of Cf or Cr.
+    """
+
+    window: float
+    threshold: float
+    log_state: bool
+    origin: np.ndarray  # the state vector the pass in force started from
+    progress: int = 0  # us of epochs that updated the stiffness, since the filter's start (whole us: the
+    next_check: int = CHECK_PERIOD_US  # node's stamps differ from replay's by ~1e-9 s, and must check alike)
+    passes: int = 1  # passes tried, the first included
+    kept: int = 0  # new passes that replaced the one in force
+
+    def close(self) -> None:
+        """No new pass from now on (a restored learned state)."""
+        self.window = 0.0
+
+    @property
+    def open(self) -> bool:
+        """Whether a new pass may still start."""
+        return self.window > 0.0 and self.progress <= self.window * 1e6
+
+    def due(self, out: np.ndarray, buffered: int) -> bool:
+        """Count one epoch's output row; True at a check (every CHECK_PERIOD s of stiffness updates)."""
+        if not self.open:
+            return False
+        if buffered > MAX_BUFFER:
+            self.close()  # too long a start-up to keep: the filter goes on in one pass
+            return False
+        if int(out[O_STATUS]) == StepStatus.UPDATED and math.isfinite(out[O_DT]):
+            self.progress += round(float(out[O_DT]) * 1e6)
+        if self.progress < self.next_check or not self.open:
+            return False
+        self.next_check = (self.progress // CHECK_PERIOD_US + 1) * CHECK_PERIOD_US
+        return True
+
+    def moved(self, state: FilterState) -> bool:
+        """Whether Cf or Cr is more than ``threshold`` and MOVE_SIGMAS std from the pass's origin."""
+        now = log_stiffness(state.x, self.log_state)
+        origin = log_stiffness(self.origin, self.log_state)
+        for k, index in enumerate((X_THETA_F, X_THETA_R)):
+            variance = float(state.p[index, index])
+            std = math.sqrt(variance) if variance > 0.0 else 0.0
+            if not self.log_state:
+                std = std / float(state.x[index]) if state.x[index] > 0.0 else math.inf
+            move = abs(now[k] - origin[k])
+            if math.isfinite(move) and move > self.threshold and move > MOVE_SIGMAS * std:
+                return True
+        return False
+
+    def step(self, rows: np.ndarray, out: np.ndarray, state: FilterState, x0: np.ndarray, p0: np.ndarray,
+             objective: Objective) -> FilterState:
+        """After the epoch ``rows[-1]`` (its output ``out``): the state to go on from.
+
+        ``rows`` are the epochs since the start; (x0, P0) the configured start. At a check, when
+        the estimate has moved, the pass from (x0 with ``state``'s parameter states, P0) is run
+        over ``rows``; it is returned if its mean NLL is below that of the pass in force.
+        """
+        if not (self.due(out, len(rows)) and self.moved(state)):
+            return state
+        self.passes += 1
+        in_force = FilterState.start(self.origin, p0)
+        candidate = FilterState.start(x0, p0)
+        candidate.x[PARAMETER_STATES] = state.x[PARAMETER_STATES]
+        for new in (in_force, candidate):  # the sensors' noise as measured so far describes the sensors, not
+            new.memo[SENSOR_NOISE] = state.memo[SENSOR_NOISE]  # the linearisation: both passes start from it
+        origin = candidate.x.copy()
+        current = objective(rows, in_force.x, in_force.p, in_force.model, in_force.memo)
+        tried = objective(rows, candidate.x, candidate.p, candidate.model, candidate.memo)
+        if not tried < current:
+            return state
+        self.origin = origin
+        self.kept += 1
+        return candidate
+
+
+def schedule_for(window: float, threshold: float, log_state: bool, x0: np.ndarray) -> RelinearizationSchedule:
+    """The schedule of a filter that starts at ``x0``."""
+    return RelinearizationSchedule(window, threshold, log_state, x0.copy())
+
+
+def run_relinearized(rows: np.ndarray, x0: np.ndarray, p0: np.ndarray, schedule: RelinearizationSchedule,
+                     run: Callable[..., None], objective: Objective, outputs: np.ndarray) -> None:
+    """The filter over ``rows`` (N, N_EPOCH_COLUMNS) into ``outputs`` (N, N_OUTPUTS), with new passes.
+
+    ``run(rows, x, p, model, memo, outputs)`` runs the compiled filter in place and ``objective``
+    its NLL (``entries.run_kernel`` and ``objective_kernel`` with the vehicle, settings, Q and R
+    bound). Epoch by epoch while the window is open, as the node; the rest in one call.
+    """
+    state = FilterState.start(x0, p0)
+    taken = 0
+    while taken < len(rows) and schedule.open:
+        run(rows[taken:taken + 1], state.x, state.p, state.model, state.memo, outputs[taken:taken + 1])
+        taken += 1
+        state = schedule.step(rows[:taken], outputs[taken - 1], state, x0, p0, objective)
+    if taken < len(rows):
+        run(rows[taken:], state.x, state.p, state.model, state.memo, outputs[taken:])
