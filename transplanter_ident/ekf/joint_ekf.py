@@ -258,7 +258,7 @@ class JointEKF:
         self._taken.append(row)
         a = self._arrays
         state = FilterState(self.state, self.covariance, self._model, self._memo)
-        state = self._schedule.step(np.array(self._taken), self._out, state, a.initial_state,
+        state = self._schedule.step(self._taken, self._out, state, a.initial_state,
                                     a.initial_covariance, partial(_pass_objective, a))
         self.state, self.covariance, self._model, self._memo = state.x, state.p, state.model, state.memo
 

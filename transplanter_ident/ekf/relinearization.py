@@ -27,7 +27,7 @@ identical. The tuner's objective runs one pass (its kernel).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -135,16 +135,18 @@ class RelinearizationSchedule:
                 return True
         return False
 
-    def step(self, rows: np.ndarray, out: np.ndarray, state: FilterState, x0: np.ndarray, p0: np.ndarray,
-             objective: Objective) -> FilterState:
+    def step(self, rows: np.ndarray | Sequence[np.ndarray], out: np.ndarray, state: FilterState, x0: np.ndarray,
+             p0: np.ndarray, objective: Objective) -> FilterState:
         """After the epoch ``rows[-1]`` (its output ``out``): the state to go on from.
 
-        ``rows`` are the epochs since the start; (x0, P0) the configured start. At a check, when
+        ``rows`` are the epochs since the start (a table, or the node's list of rows); (x0, P0) the
+        configured start. At a check, when
         the estimate has moved, the pass from (x0 with ``state``'s parameter states, P0) is run
         over ``rows``; it is returned if its mean NLL is below that of the pass in force.
         """
         if not (self.due(out, len(rows)) and self.moved(state)):
             return state
+        rows = np.asarray(rows)  # the node's list of rows becomes a table only here
         self.passes += 1
         in_force = FilterState.start(self.origin, p0)
         candidate = FilterState.start(x0, p0)
