@@ -258,8 +258,8 @@ class JointEKF:
         self._taken.append(row)
         a = self._arrays
         state = FilterState(self.state, self.covariance, self._model, self._memo)
-        state = self._schedule.step(self._taken, self._out, state, a.initial_state,
-                                    a.initial_covariance, partial(_pass_objective, a))
+        state = self._schedule.step(self._taken, self._out, state, a.initial_state, a.initial_covariance,
+                                    partial(_run_pass, a))
         self.state, self.covariance, self._model, self._memo = state.x, state.p, state.model, state.memo
 
 
@@ -274,20 +274,16 @@ def run_sequence(config: EstimatorConfig, epochs: EpochArrays) -> np.ndarray:
     outputs = np.zeros((len(epochs), N_OUTPUTS))
     rows = kernel_input(epochs)
 
-    def run(part, x, p, model, memo, out):  # noqa: ANN001, ANN202 - the compiled filter in place
-        run_kernel(part, x, p, model, memo, a.vehicle, a.settings, a.process_noise, a.measurement_noise, out)
-
-    run_relinearized(rows, a.initial_state, a.initial_covariance, relinearization_schedule(config, a), run,
-                     partial(_pass_objective, a), outputs)
+    run_relinearized(rows, a.initial_state, a.initial_covariance, relinearization_schedule(config, a),
+                     partial(_run_pass, a), outputs)
     identifiability_guard(config, a).run(rows, outputs)
     return outputs
 
 
-def _pass_objective(a: FilterArrays, rows: np.ndarray, x: np.ndarray, p: np.ndarray, model: np.ndarray,
-                    memo: np.ndarray) -> float:
-    """The mean NLL of a pass over ``rows`` from (x, p, model, memo), in place (relinearization.Objective)."""
-    return float(objective_kernel(rows, x, p, model, memo, a.vehicle, a.settings, a.process_noise,
-                                  a.measurement_noise, NLL))
+def _run_pass(a: FilterArrays, rows: np.ndarray, x: np.ndarray, p: np.ndarray, model: np.ndarray, memo: np.ndarray,
+              outputs: np.ndarray) -> None:
+    """The compiled filter over ``rows`` from (x, p, model, memo), in place (relinearization.Run)."""
+    run_kernel(rows, x, p, model, memo, a.vehicle, a.settings, a.process_noise, a.measurement_noise, outputs)
 
 
 def relinearization_schedule(config: EstimatorConfig, arrays: FilterArrays) -> RelinearizationSchedule:

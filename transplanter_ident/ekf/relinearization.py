@@ -12,8 +12,8 @@ So during the first ``ekf.relinearization_window`` s of stiffness updates, every
 ``ekf.relinearization_threshold`` (relative, |Δ ln C|) and :data:`MOVE_SIGMAS` std from where the
 filter's pass started, a new pass is tried: the configured state and covariance with the
 parameter states (θf, θr, b) held now, over the epochs since the start. It replaces the pass in
-force only if its innovations make those epochs more likely (the mean Gaussian NLL of
-eq. 21's innovations, :data:`~transplanter_ident.ekf.layout.NLL`): a Gauss-Newton step of the
+force only if its innovations make those epochs more likely (the mean Gaussian NLL of the
+innovations, the tuner's objective, :func:`epoch_nll`): a Gauss-Newton step of the
 whole start-up, as an iterated EKF takes for one update, kept only when it is a step downhill.
 The outputs already published stay; the state goes on from the pass in force. Window 0: the
 filter of the paper (one pass).
@@ -33,11 +33,17 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from transplanter_ident.ekf.layout import (
+    DIVERGENCE_PENALTY,
     M_NOISE_SPAN_SECOND,
     M_NOISE_VY,
     N_MEMO,
     N_MODEL,
+    N_OUTPUTS,
     O_DT,
+    O_NIS,
+    O_S00,
+    O_S01,
+    O_S11,
     O_STATUS,
     PARAMETER_STATES,
     X_THETA_F,
@@ -55,8 +61,34 @@ SENSOR_NOISE = slice(M_NOISE_VY, M_NOISE_SPAN_SECOND + 1)
 #: epochs kept for a new pass at most (a start-up spent standing still ends the window)
 MAX_BUFFER = 20000
 
-#: the filter over rows from (x, p, model, memo), in place, returning the mean NLL of its innovations
-Objective = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], float]
+#: the compiled filter over rows from (x, p, model, memo), in place, into output rows (entries.run_kernel)
+Run = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], None]
+#: the statuses whose innovation the NLL counts, and those that make a pass score DIVERGENCE_PENALTY
+COUNTED = (StepStatus.UPDATED, StepStatus.GATED, StepStatus.NONLINEAR)
+FAILED = (StepStatus.DIVERGED, StepStatus.RESTARTED)
+
+
+def epoch_nll(outputs: np.ndarray) -> np.ndarray:
+    """Per output row: its innovation's Gaussian NLL (objective NLL); NaN if not counted, inf if it fails the pass.
+
+    What ``sequence.objective_n`` sums (test_relinearization checks the two agree).
+    """
+    outputs = np.atleast_2d(outputs)
+    status = outputs[:, O_STATUS].astype(int)
+    det = outputs[:, O_S00] * outputs[:, O_S11] - outputs[:, O_S01] ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        value = 0.5 * (outputs[:, O_NIS] + np.log(np.where(det > 0.0, det, 1.0))) + math.log(2.0 * math.pi)
+    value = np.where(np.isin(status, COUNTED), np.where(det > 0.0, value, math.inf), math.nan)
+    return np.where(np.isin(status, FAILED), math.inf, value)
+
+
+def mean_nll(values: np.ndarray) -> float:
+    """The pass's objective from its epochs' :func:`epoch_nll`: their mean, DIVERGENCE_PENALTY at most."""
+    counted = values[~np.isnan(values)]
+    if len(counted) == 0:
+        return DIVERGENCE_PENALTY
+    mean = float(np.mean(counted))
+    return min(mean, DIVERGENCE_PENALTY) if math.isfinite(mean) else DIVERGENCE_PENALTY
 
 
 def log_stiffness(state: np.ndarray, log_state: bool) -> tuple[float, float]:
@@ -97,10 +129,12 @@ class RelinearizationSchedule:
     next_check: int = CHECK_PERIOD_US  # node's stamps differ from replay's by ~1e-9 s, and must check alike)
     passes: int = 1  # passes tried, the first included
     kept: int = 0  # new passes that replaced the one in force
+    in_force: list[float] = field(default_factory=list)  # epoch_nll of the pass in force, epoch by epoch
 
     def close(self) -> None:
         """No new pass from now on (a restored learned state)."""
         self.window = 0.0
+        self.in_force = []
 
     @property
     def open(self) -> bool:
@@ -136,29 +170,31 @@ class RelinearizationSchedule:
         return False
 
     def step(self, rows: np.ndarray | Sequence[np.ndarray], out: np.ndarray, state: FilterState, x0: np.ndarray,
-             p0: np.ndarray, objective: Objective) -> FilterState:
+             p0: np.ndarray, run: Run) -> FilterState:
         """After the epoch ``rows[-1]`` (its output ``out``): the state to go on from.
 
         ``rows`` are the epochs since the start (a table, or the node's list of rows); (x0, P0) the
-        configured start. At a check, when
-        the estimate has moved, the pass from (x0 with ``state``'s parameter states, P0) is run
-        over ``rows``; it is returned if its mean NLL is below that of the pass in force.
+        configured start. At a check, when the estimate has moved, the pass from (x0 with ``state``'s
+        parameter states, P0) is run over ``rows``; it is returned if its mean NLL is below that of
+        the pass in force over the same epochs.
         """
+        if self.open:
+            self.in_force.append(float(epoch_nll(out)[0]))
         if not (self.due(out, len(rows)) and self.moved(state)):
             return state
         rows = np.asarray(rows)  # the node's list of rows becomes a table only here
         self.passes += 1
-        in_force = FilterState.start(self.origin, p0)
         candidate = FilterState.start(x0, p0)
         candidate.x[PARAMETER_STATES] = state.x[PARAMETER_STATES]
-        for new in (in_force, candidate):  # the sensors' noise as measured so far describes the sensors, not
-            new.memo[SENSOR_NOISE] = state.memo[SENSOR_NOISE]  # the linearisation: both passes start from it
+        # the sensors' noise as measured so far describes the sensors, not the linearisation: kept
+        candidate.memo[SENSOR_NOISE] = state.memo[SENSOR_NOISE]
         origin = candidate.x.copy()
-        current = objective(rows, in_force.x, in_force.p, in_force.model, in_force.memo)
-        tried = objective(rows, candidate.x, candidate.p, candidate.model, candidate.memo)
-        if not tried < current:
+        outputs = np.zeros((len(rows), N_OUTPUTS))
+        run(rows, candidate.x, candidate.p, candidate.model, candidate.memo, outputs)
+        tried = epoch_nll(outputs)
+        if not mean_nll(tried) < mean_nll(np.array(self.in_force)):
             return state
-        self.origin = origin
+        self.origin, self.in_force = origin, tried.tolist()
         self.kept += 1
         return candidate
 
@@ -169,18 +205,18 @@ def schedule_for(window: float, threshold: float, log_state: bool, x0: np.ndarra
 
 
 def run_relinearized(rows: np.ndarray, x0: np.ndarray, p0: np.ndarray, schedule: RelinearizationSchedule,
-                     run: Callable[..., None], objective: Objective, outputs: np.ndarray) -> None:
+                     run: Run, outputs: np.ndarray) -> None:
     """The filter over ``rows`` (N, N_EPOCH_COLUMNS) into ``outputs`` (N, N_OUTPUTS), with new passes.
 
-    ``run(rows, x, p, model, memo, outputs)`` runs the compiled filter in place and ``objective``
-    its NLL (``entries.run_kernel`` and ``objective_kernel`` with the vehicle, settings, Q and R
-    bound). Epoch by epoch while the window is open, as the node; the rest in one call.
+    ``run(rows, x, p, model, memo, outputs)`` runs the compiled filter in place (``entries.run_kernel``
+    with the vehicle, settings, Q and R bound). Epoch by epoch while the window is open, as the
+    node; the rest in one call.
     """
     state = FilterState.start(x0, p0)
     taken = 0
     while taken < len(rows) and schedule.open:
         run(rows[taken:taken + 1], state.x, state.p, state.model, state.memo, outputs[taken:taken + 1])
         taken += 1
-        state = schedule.step(rows[:taken], outputs[taken - 1], state, x0, p0, objective)
+        state = schedule.step(rows[:taken], outputs[taken - 1], state, x0, p0, run)
     if taken < len(rows):
         run(rows[taken:], state.x, state.p, state.model, state.memo, outputs[taken:])

@@ -52,7 +52,7 @@ from std_srvs.srv import Trigger
 
 from transplanter_ident.config.params_file import EstimatorParams, ParamsError, parameter_value
 from transplanter_ident.config.schema import PARAMS, SCHEMA, is_ros_builtin, unknown_key_message
-from transplanter_ident.ekf.joint_ekf import Estimate, JointEKF, sequence_objective
+from transplanter_ident.ekf.joint_ekf import Estimate, JointEKF, run_sequence
 from transplanter_ident.ekf.persistence import Keeper, LearnedState, default_path
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays, Rejection
@@ -385,15 +385,14 @@ class EstimatorNode(Node):
 
 
 def _warm_up(params: EstimatorParams) -> None:
-    """Run the compiled filter step, the information sum and the pass objective once, so no epoch waits.
+    """Run the compiled filter step, the information sum and the run over epochs once, so no epoch waits.
 
-    A stall while a kernel loads lets the executor take one topic's backlog first, and epochs are then
-    formed without their steering; the objective is what a re-linearised pass runs (ekf/relinearization.py).
+    A stall while a kernel loads lets the executor take one topic's backlog first; the run over epochs is
+    what a re-linearised pass takes (ekf/relinearization.py).
     """
     ekf = JointEKF(params.config)
     epochs = [Epoch(t=t, longitudinal_velocity=1.0, lateral_velocity=0.0, heading=0.0, yaw_rate=0.0, steering=0.1,
                     steering_rate=0.0, speed=1.0) for t in (0.0, 0.1, 1.2)]  # turned wheels: the bound is evaluated
     for epoch in epochs:
         ekf.step(epoch)
-    if params.config.options.relinearization_window > 0.0:
-        sequence_objective(params.config, EpochArrays(epochs), "nll")
+    run_sequence(params.config, EpochArrays(epochs))
