@@ -129,7 +129,7 @@ class RelinearizationSchedule:
     next_check: int = CHECK_PERIOD_US  # node's stamps differ from replay's by ~1e-9 s, and must check alike)
     passes: int = 1  # passes tried, the first included
     kept: int = 0  # new passes that replaced the one in force
-    in_force: list[float] = field(default_factory=list)  # epoch_nll of the pass in force, epoch by epoch
+    in_force: list[np.ndarray] = field(default_factory=list)  # output rows of the pass in force (scored at checks)
 
     def close(self) -> None:
         """No new pass from now on (a restored learned state)."""
@@ -179,7 +179,7 @@ class RelinearizationSchedule:
         the pass in force over the same epochs.
         """
         if self.open:
-            self.in_force.append(float(epoch_nll(out)[0]))
+            self.in_force.append(out.copy())  # scored only at a check: the node's epochs stay cheap
         if not (self.due(out, len(rows)) and self.moved(state)):
             return state
         rows = np.asarray(rows)  # the node's list of rows becomes a table only here
@@ -191,10 +191,9 @@ class RelinearizationSchedule:
         origin = candidate.x.copy()
         outputs = np.zeros((len(rows), N_OUTPUTS))
         run(rows, candidate.x, candidate.p, candidate.model, candidate.memo, outputs)
-        tried = epoch_nll(outputs)
-        if not mean_nll(tried) < mean_nll(np.array(self.in_force)):
+        if not mean_nll(epoch_nll(outputs)) < mean_nll(epoch_nll(np.array(self.in_force))):
             return state
-        self.origin, self.in_force = origin, tried.tolist()
+        self.origin, self.in_force = origin, list(outputs)
         self.kept += 1
         return candidate
 
