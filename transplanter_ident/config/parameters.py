@@ -82,7 +82,7 @@ class FilterOptions:
     identifiability_min_steering: float = 0.05  # rad: re-evaluated only while the wheels are turned this much
     identifiability_period: float = 1.0  # s of data between two evaluations of the information
     max_identifiable_rel_std: float = 0.10  # Cramer-Rao 1-sigma (relative) above which a direction is not pinned
-    relinearization_window: float = 0.0  # s of stiffness updates at the start with re-linearised passes (60 s); 0 off
+    relinearization_window: float = 60.0  # s of stiffness updates at the start with re-linearised passes; 0: one pass
     relinearization_threshold: float = 0.1  # |d ln C| since the pass began that starts a new one
 
     def __post_init__(self) -> None:

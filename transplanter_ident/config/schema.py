@@ -262,10 +262,10 @@ SCHEMA: tuple[Param, ...] = (
     _float("ekf.max_identifiable_rel_std", 0.10, "", "relative Cramer-Rao 1-sigma above which the recent data "
            "do not pin a direction of (ln Cf, ln Cr)", 1.0e-4, 10.0),
     # re-linearised passes at the start (ekf/relinearization.py)
-    _float("ekf.relinearization_window", 0.0, "s", "for this many seconds of stiffness updates after the start, "
+    _float("ekf.relinearization_window", 60.0, "s", "for this many seconds of stiffness updates after the start, "
            "every 5 s of them, when Cf or Cr has moved more than ekf.relinearization_threshold from where the "
            "filter's pass started, it filters the epochs so far again from the stiffness and offset it holds "
-           "(its first steps were linearised at the initial stiffness); 0 (default, for now): one pass; 60 s: see the README",
+           "(its first steps were linearised at the initial stiffness); 0: one pass (the paper's); see the README",
            0.0, 3600.0),
     _float("ekf.relinearization_threshold", 0.1, "", "relative move of Cf or Cr (|d ln C|) since the pass began "
            "that starts a new pass", 1.0e-3, 10.0),
