@@ -89,10 +89,12 @@ def test_the_kernel_learns_as_a_plain_loop_over_its_outputs() -> None:
     Per epoch the filter passed (UPDATED or NONLINEAR): prior = S_ii - R_i f_i (f: the factor in use, the
     previous epoch's), sample (e_i^2 - prior) / R_i of weight (R_i f_i / S_ii)^2 dt, a weighted mean over the
     first ekf.noise_memory s, then exponential; the factor is that mean clipped to [1, max_noise_scale].
+    One pass (``ekf.relinearization_window: 0``): a re-linearised pass goes on from what it learned over
+    epochs whose outputs were published by the pass before it.
     """
-    config = EstimatorConfig()
+    config = EstimatorConfig(options=replace(EstimatorConfig().options, relinearization_window=0.0))
     options, r = config.options, np.array(config.noise.measurement_noise)
-    run = run_drive(sine_drive(3, noise=noisier(2.0, 1.5)))
+    run = run_drive(sine_drive(3, noise=noisier(2.0, 1.5)), config)
     out = run.outputs
     mean, span = np.zeros(2), np.zeros(2)
     factors = np.ones(2)

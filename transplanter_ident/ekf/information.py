@@ -106,8 +106,10 @@ def output_error_information(epochs, theta, vehicle, antenna_x, r_noise, segment
             for p in range(N_INFORMATION):
                 for j in range(nd):
                     new_sens[i, p] += ws[W_E, i, j] * sens[j, p]
-        x[:] = new_x
-        sens[:, :] = new_sens
+        for i in range(nd):  # element by element: a slice assignment compiles numba's shape-error message (~8 s)
+            x[i] = new_x[i]
+            for p in range(N_INFORMATION):
+                sens[i, p] = new_sens[i, p]
         # R of z = [vy_antenna, psi] as the filter takes it, inverted
         epoch_measurement_noise(r_noise, from_covariance, True, epochs[k, E_VAR_VY], epochs[k, E_VAR_PSI], 0.0,
                                 r_epoch)

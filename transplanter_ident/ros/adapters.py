@@ -1,6 +1,6 @@
 """Message adapters of the `estimator` node: input message types, field extraction, output and diagnostics messages.
 
-The tables map each input message type the schema allows (``topics.*_type``, config/schema.py) to
+The inputs' QoS (:data:`INPUT_QOS`). The tables map each input message type the schema allows (``topics.*_type``, config/schema.py) to
 its rclpy class and to the function that feeds one message's fields to the
 :class:`~transplanter_ident.epochs.assembler.EpochAssembler`, exactly as the bag reader does
 (:mod:`transplanter_ident.bags.messages`): a TwistWithCovarianceStamped or Odometry velocity with its
@@ -27,6 +27,7 @@ from geometry_msgs.msg import (
     Vector3Stamped,
 )
 from nav_msgs.msg import Odometry
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import Bool, Float64
 
@@ -36,6 +37,13 @@ from transplanter_ident.epochs.checks import joint_angle
 from transplanter_ident.epochs.epoch import Epoch
 from transplanter_ident.epochs.frames import YAW_VARIANCE_IMU, YAW_VARIANCE_POSE, stamp_seconds
 from transplanter_ident.evaluation.health_report import HealthReport
+
+#: messages each input holds while the node is busy: 2 s of 50 Hz steering, so a stall of the node's process
+#: (a busy vehicle computer) delays epochs instead of dropping samples (qos_profile_sensor_data holds 5)
+INPUT_QUEUE_DEPTH = 100
+#: the inputs' QoS: best effort and volatile accept every publisher's QoS (as qos_profile_sensor_data), deeper
+INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=INPUT_QUEUE_DEPTH,
+                       reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
 
 #: (assembler, stamp s, message) -> the epochs the sample completes
 Feeder = Callable[[EpochAssembler, float, Any], list[Epoch]]

@@ -7,7 +7,7 @@ that ``replay`` and ``tuner`` run offline, so the node's outputs equal replay's 
 Message types and field extraction are in :mod:`.adapters`, parameters (schema, descriptors,
 validation) in :mod:`.parameters`, the command line and the executor in :mod:`.main`.
 
-Subscriptions (best effort, volatile, ``INPUT_QUEUE_DEPTH`` deep; names and types are parameters):
+Subscriptions (``adapters.INPUT_QOS``: best effort, volatile, 100 deep; names and types are parameters):
     topics.velocity  geometry_msgs/TwistStamped | TwistWithCovarianceStamped | nav_msgs/Odometry (topics.velocity_type)
     topics.heading   geometry_msgs/QuaternionStamped | sensor_msgs/Imu | PoseWithCovarianceStamped | nav_msgs/Odometry
                      (topics.heading_type; one Odometry topic may serve velocity and heading: one subscription)
@@ -45,7 +45,6 @@ from rclpy.duration import Duration
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
@@ -74,12 +73,6 @@ from transplanter_ident.ros.startup import optional_output_report
 
 NODE_NAME = "estimator"
 SHUTDOWN_ACK_TIMEOUT = 0.2  # s per output publisher at a clean stop, for reliable subscribers to take the last epoch
-#: messages each input holds while the node is busy: 2 s of 50 Hz steering, so a stall of the node's process
-#: (a busy vehicle computer) delays epochs instead of dropping samples (qos_profile_sensor_data holds 5)
-INPUT_QUEUE_DEPTH = 100
-#: the inputs' QoS: best effort and volatile accept every publisher's QoS (as qos_profile_sensor_data), deeper
-INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=INPUT_QUEUE_DEPTH,
-                       reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
 
 
 class EstimatorNode(Node):
@@ -165,7 +158,7 @@ class EstimatorNode(Node):
         for role, msg_type, callback in (("steering", steering_type, steering_callback), *gnss):
             # best effort + volatile accept every publisher's QoS; a publisher of another type is found in the graph
             events = SubscriptionEventCallbacks(use_default_callbacks=False)
-            subscription = self.create_subscription(msg_type, self._topics[role], callback, INPUT_QOS,
+            subscription = self.create_subscription(msg_type, self._topics[role], callback, adapters.INPUT_QOS,
                                                     event_callbacks=events)
             inputs.append((role, subscription.topic_name, adapters.ros_type_name(msg_type)))
         return inputs

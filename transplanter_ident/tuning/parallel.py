@@ -40,7 +40,6 @@ from typing import Any, Protocol
 import numpy as np
 
 from transplanter_ident.config.parameters import EstimatorConfig
-from transplanter_ident.ekf.joint_ekf import run_sequence
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
 from transplanter_ident.evaluation.cramer_rao import cramer_rao_bound
 from transplanter_ident.tuning.problem import TuningProblem
@@ -76,17 +75,17 @@ def warm_kernels(config: EstimatorConfig) -> None:
 
 
 def warm_worker(config: EstimatorConfig, wait_for_host: Callable[[], bool]) -> None:
-    """A worker's start: the Cramér-Rao kernel, then the filter run of Table 2 and the objective.
+    """A worker's start: the Cramér-Rao kernel, then the objective.
 
     On a cold start the host compiles the step and the objective meanwhile (``host_warm_up`` of
     :class:`ProcessBackend`). The worker compiles the bound's kernel, which does not use the
-    step, then waits for the host and finds the step and the objective in numba's disk cache:
+    step, then waits for the host and finds the objective, step included, in numba's disk cache:
     the step, most of the compile time, is compiled once, and the compiles run on both cores.
+    The filter run of Table 2 (``run_sequence``) is left to the first task that needs it (cold,
+    ~3 s to link the cached step into it): the worker takes candidates that much sooner.
     """
-    still = _still_epochs()
-    cramer_rao_bound(config, still, config.noise.initial_stiffness, config.vehicle.steering_offset)
+    cramer_rao_bound(config, _still_epochs(), config.noise.initial_stiffness, config.vehicle.steering_offset)
     wait_for_host()
-    run_sequence(config, still)
     warm_kernels(config)
 
 
