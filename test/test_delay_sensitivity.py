@@ -6,7 +6,9 @@ propagates, through its own F and K, the first-order error per second of such a 
 ``delay_sensitivity`` (/diagnostics "convergence", per ms), and with ``ekf.delay_uncertainty``
 (1-sigma, s) added to the Cf, Cr std. The same propagation gives the innovation a delay would leave,
 and a least-squares fit of the innovations to it measures the delay (``delay_estimate``, with its std);
-one ``validity.max_delay_sigmas`` (3) std from zero makes the estimate invalid.
+one ``validity.max_delay_sigmas`` (3) std from zero makes the estimate invalid, and so does one that is
+not yet significant but moves Cf or Cr (its lower 1-sigma bound) beyond ``validity.max_delay_shift`` (1.5)
+of their reported std.
 
 Measured over seeds 0-9 on the project's simulator (test/drives.py) with defaults.
 """
@@ -112,6 +114,31 @@ def test_a_measured_delay_makes_the_estimate_invalid_and_says_so() -> None:
     run, monitor = run_drive(result), monitor_for(EstimatorConfig(), ValiditySettings())
     reasons = [r for k, epoch in enumerate(epochs_of(result)) for r in monitor.step(sample_of(epoch, run.outputs[k])).reasons]
     assert any("GNSS delay of +" in r and "gnss.delay" in r for r in reasons)
+
+
+def test_a_delay_that_moves_the_stiffness_beyond_its_band_is_not_valid() -> None:
+    """10 ms late, unconfigured (Cf ~ -18 %): valid in <= 15 % of the epochs from 30 s on, seeds 0-9.
+
+    Measured 11 %; 31 % without the shift check (validity.max_delay_shift 100). The reason says by how much
+    the delay moves the stiffness. The same drives without the delay lose <= 5 points (measured 92 -> 90 %).
+    """
+    without = ValiditySettings(max_delay_shift=100.0)
+    shares: dict[tuple[float, bool], list[float]] = {}
+    for seed in SEEDS:
+        for delay in (0.01, 0.0):
+            result = simulate(sine_drive(seed, gnss_delay=delay))
+            run, epochs = run_drive(result), epochs_of(result)
+            for checked, settings in ((True, ValiditySettings()), (False, without)):
+                valid = decide_sequence(EstimatorConfig(), settings, epochs, run.outputs)
+                shares.setdefault((delay, checked), []).append(np.mean(valid[run.t >= 30.0]))
+    late, late_unchecked = np.mean(shares[0.01, True]), np.mean(shares[0.01, False])
+    clean, clean_unchecked = np.mean(shares[0.0, True]), np.mean(shares[0.0, False])
+    assert late <= 0.15 and late_unchecked >= 2.0 * late, (late, late_unchecked)
+    assert clean >= clean_unchecked - 0.05, (clean, clean_unchecked)
+    result = simulate(sine_drive(1, gnss_delay=0.01))
+    run, monitor = run_drive(result), monitor_for(EstimatorConfig(), ValiditySettings())
+    reasons = [r for k, epoch in enumerate(epochs_of(result)) for r in monitor.step(sample_of(epoch, run.outputs[k])).reasons]
+    assert any("moves the stiffness by" in r and "gnss.delay" in r for r in reasons)
 
 
 def test_long_clean_drives_rarely_show_a_delay() -> None:

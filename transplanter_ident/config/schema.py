@@ -288,6 +288,10 @@ SCHEMA: tuple[Param, ...] = (
     _float("validity.max_delay_sigmas", 3.0, "", "the GNSS delay left out of gnss.delay, as the filter measures it "
            "from its innovations (/diagnostics delay_estimate_ms), this many std from zero makes the estimate "
            "invalid", 0.5, 100.0, read_only=False),
+    _float("validity.max_delay_shift", 1.5, "", "the shift of Cf or Cr that the measured GNSS delay implies (its "
+           "lower 1-sigma bound |delay| - std times the estimate's sensitivity per second of delay), in the "
+           "estimate's reported std, above which the estimate is not valid: a delay the data show but cannot yet "
+           "pin moves the stiffness beyond its band", 0.1, 100.0, read_only=False),
     _float("validity.max_autocorrelation", 0.3, "", "lag-1 autocorrelation of the whitened vy innovation above "
            "which the filter is inconsistent (an unconfigured delay)", 0.01, 1.0, read_only=False),
     _float("validity.max_sideslip", 0.35, "rad", "median |vy/vx| above which GNSS velocity and heading disagree "

@@ -4,6 +4,8 @@ A precise-looking number that is wrong is the worst output, so an estimate is va
 of these hold over a window of data time (the same decision online and offline):
 
 * converged: the relative 1-sigma of Cf and Cr is small, and neither is pinned at a bound;
+* no GNSS delay left out: the delay the filter measures from its innovations is not 3 std from zero,
+  nor does it (its lower 1-sigma bound) move Cf or Cr beyond their reported std;
 * excited: the steering and the yaw rate varied enough (a held step identifies little);
 * consistent: the normalised innovation squared (NIS, chi^2 with 2 dof per epoch when the
   filter's model and R are right) passes a windowed chi^2 test, and the whitened innovations are
@@ -38,6 +40,8 @@ from transplanter_ident.ekf.layout import (
     O_CR_STD,
     O_DELAY_ESTIMATE,
     O_DELAY_ESTIMATE_STD,
+    O_DELAY_SENS_F,
+    O_DELAY_SENS_R,
     O_E0,
     O_NIS_CONFIGURED,
     O_S00,
@@ -45,7 +49,7 @@ from transplanter_ident.ekf.layout import (
     StepStatus,
 )
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
-from transplanter_ident.evaluation.validity_batch import decide_batch, delay_shows
+from transplanter_ident.evaluation.validity_batch import decide_batch, delay_shifts, delay_shows
 
 #: s of data between two evaluations of the window checks
 RECHECK = 1.0
@@ -75,6 +79,7 @@ class Sample:
     rejected: int = 0  # input samples (and epochs) rejected since the previous epoch
     delay: float = 0.0  # s, the GNSS delay left out of gnss.delay as the filter measures it (layout.O_DELAY_ESTIMATE)
     delay_std: float = 0.0  # s, its std (0: not measured yet)
+    delay_sensitivity: tuple[float, float] = (0.0, 0.0)  # relative error of Cf, Cr per s of delay (O_DELAY_SENS_F/R)
 
 
 @dataclass(frozen=True)
@@ -150,13 +155,20 @@ class ValidityMonitor:
         reasons = []
         if sample.status not in PREDICTED:
             reasons.append(f"epoch status {sample.status.name}")
-        worst = max(sample.cf_std / sample.cf, sample.cr_std / sample.cr)
+        relative = (sample.cf_std / sample.cf, sample.cr_std / sample.cr)
+        worst = max(relative)
         if not worst <= self.settings.max_rel_std:
             reasons.append(f"not converged (relative 1-sigma {worst:.3f} > {self.settings.max_rel_std:g})")
         if delay_shows(sample.delay, sample.delay_std, self.settings.max_delay_sigmas):
             reasons.append(f"the innovations show a GNSS delay of {1e3 * sample.delay:+.0f} +- {1e3 * sample.delay_std:.0f}"
                            " ms not in gnss.delay (the stiffness moves ~2 % per ms): set gnss.delay, or tuner "
                            "--estimate-delay")
+        elif any(delay_shifts(sample.delay, sample.delay_std, sensitivity, rel_std, self.settings.max_delay_shift)
+                 for sensitivity, rel_std in zip(sample.delay_sensitivity, relative, strict=True)):
+            shift = max(abs(s) for s in sample.delay_sensitivity) * max(abs(sample.delay) - sample.delay_std, 0.0)
+            reasons.append(f"the innovations show a GNSS delay of {1e3 * sample.delay:+.0f} +- "
+                           f"{1e3 * sample.delay_std:.0f} ms, which moves the stiffness by {100 * shift:.0f} % or more, "
+                           "beyond its band: set gnss.delay, or tuner --estimate-delay")
         return reasons
 
     def _plausibility(self, window: list[Sample]) -> list[str]:
@@ -254,7 +266,8 @@ def sample_of(epoch: Epoch, row: np.ndarray, rejected: int = 0) -> Sample:
                   yaw_rate=epoch.yaw_rate, speed=epoch.speed,
                   antenna_lateral_velocity=float(epoch.antenna_lateral_velocity), nis=float(row[O_NIS_CONFIGURED]),
                   whitened_vy=float(row[O_E0]) / math.sqrt(s00) if s00 > 0.0 else 0.0, rejected=int(rejected),
-                  delay=float(row[O_DELAY_ESTIMATE]), delay_std=float(row[O_DELAY_ESTIMATE_STD]))
+                  delay=float(row[O_DELAY_ESTIMATE]), delay_std=float(row[O_DELAY_ESTIMATE_STD]),
+                  delay_sensitivity=(float(row[O_DELAY_SENS_F]), float(row[O_DELAY_SENS_R])))
 
 
 def monitor_for(config: EstimatorConfig, settings: ValiditySettings) -> ValidityMonitor:

@@ -24,6 +24,8 @@ from transplanter_ident.ekf.layout import (
     O_CR_STD,
     O_DELAY_ESTIMATE,
     O_DELAY_ESTIMATE_STD,
+    O_DELAY_SENS_F,
+    O_DELAY_SENS_R,
     O_E0,
     O_NIS_CONFIGURED,
     O_S00,
@@ -39,6 +41,17 @@ _PREDICTED = (StepStatus.UPDATED, StepStatus.NONLINEAR, StepStatus.GATED)
 def delay_shows(delay, std, sigmas: float):  # noqa: ANN001, ANN201 - floats or arrays alike
     """Whether the measured GNSS delay left out is ``sigmas`` std from zero (never before it is measured)."""
     return (std > 0.0) & (np.abs(delay) > sigmas * std)
+
+
+def delay_shifts(delay, std, sensitivity, rel_std, max_shift: float):  # noqa: ANN001, ANN201 - floats or arrays alike
+    """Whether the measured delay moves a stiffness beyond ``max_shift`` of its reported relative std.
+
+    The shift is the delay's lower 1-sigma bound, max(|delay| - std, 0), times the estimate's relative
+    error per second of delay (layout.O_DELAY_SENS_F/R): at 2 m/s ~2 % per ms, so a delay of 10 ms that
+    is not yet 3 std from zero (delay_shows) already moves the estimate several times its band.
+    """
+    lower = np.maximum(np.abs(delay) - std, 0.0)
+    return (std > 0.0) & (np.abs(sensitivity) * lower > max_shift * rel_std)
 
 
 def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever: float, recheck: float,
@@ -72,7 +85,10 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
         front, rear = cf_std / cf, cr_std / cr
         worst = np.where(rear > front, rear, front)  # max(front, rear), NaN as Python's max treats it
         delay, delay_std = outputs[:, O_DELAY_ESTIMATE], outputs[:, O_DELAY_ESTIMATE_STD]
-        soft = ~predicted | ~(worst <= settings.max_rel_std) | delay_shows(delay, delay_std, settings.max_delay_sigmas)
+        shifted = (delay_shifts(delay, delay_std, outputs[:, O_DELAY_SENS_F], front, settings.max_delay_shift)
+                   | delay_shifts(delay, delay_std, outputs[:, O_DELAY_SENS_R], rear, settings.max_delay_shift))
+        soft = (~predicted | ~(worst <= settings.max_rel_std) | delay_shows(delay, delay_std, settings.max_delay_sigmas)
+                | shifted)
         s00 = outputs[:, O_S00]
         whitened = np.divide(outputs[:, O_E0], np.sqrt(np.where(s00 > 0.0, s00, 1.0)), where=s00 > 0.0,
                              out=np.zeros(n))
