@@ -414,6 +414,34 @@ def test_online_equals_offline(tmp_path: Path, executor: str) -> None:
     assert [row["valid"] for row in csv_rows] == [row["valid"] for row in online]  # replay's CSV column `valid`
 
 
+def test_a_burst_of_messages_is_queued_not_dropped(tmp_path: Path) -> None:
+    """A bag's first messages sent at once, without a pause (under 100 per input): every epoch, replay's numbers.
+
+    The node's inputs hold ``adapters.INPUT_QUEUE_DEPTH`` (100) messages; qos_profile_sensor_data's 5 would
+    drop most of such a burst while the node is busy with the first epochs.
+    """
+    from transplanter_ident.ros.adapters import INPUT_QUEUE_DEPTH
+
+    params = EstimatorParams()
+    specs = bag_specs(sample_bag(tmp_path), params)
+    start = spec_stamp(specs[0])
+    burst = [spec for spec in specs if spec_stamp(spec) < start + 1.5]
+    per_topic = {topic: sum(1 for spec in burst if spec["topic"] == topic) for topic in (VEL, HEAD, STEER)}
+    assert 20 <= max(per_topic.values()) < INPUT_QUEUE_DEPTH, per_topic
+    expected = offline_outputs(specs_to_samples(burst), params)
+    assert len(expected) >= 5
+    result = run_scenario({
+        "estimator_args": ["--params-file", str(CONFIG)],
+        "record": record_spec(),
+        "publish_types": PUBLISH_TYPES,
+        "steps": [{"publish": burst, "pace": 0.0}, {"wait_for": ["measurement", len(expected), 30.0]}, {"spin": 0.3}],
+    }, timeout=240)
+    assert result["alive"] and result["returncode"] == 0, result["log"]
+    online = online_outputs(result["records"])
+    assert len(online) == len(expected), f"{len(online)} of {len(expected)} epochs published\n{result['log']}"
+    assert max_relative_difference(online, expected) <= 1e-9
+
+
 # --------------------------------------------------------------------------- bad input
 
 BAD_T0 = 1000.0
