@@ -83,7 +83,8 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
             hold_off=float(rng.choice((0.1, 0.5, 1.0))), max_autocorrelation=float(rng.choice((0.05, 0.3))),
             max_nonlinear_fraction=float(rng.choice((0.01, 0.2))), min_steering_std=float(rng.choice((0.02, 0.2))),
             max_sideslip=float(rng.choice((0.02, 0.35))), course_ratio=float(rng.choice((0.2, 5.0))),
-            max_suspect_fraction=float(rng.choice((0.05, 0.5))))
+            max_suspect_fraction=float(rng.choice((0.05, 0.5))), max_delay_sigmas=float(rng.choice((1.0, 3.0))),
+            max_delay_shift=float(rng.choice((0.3, 1.5, 100.0))))
         rejected = [0] * n
         for _ in range(int(rng.integers(0, 4))):
             start = int(rng.integers(0, n))

@@ -106,7 +106,7 @@ def output_error_information(epochs, theta, vehicle, antenna_x, r_noise, segment
             for p in range(N_INFORMATION):
                 for j in range(nd):
                     new_sens[i, p] += ws[W_E, i, j] * sens[j, p]
-        for i in range(nd):  # element by element: a slice assignment compiles numba's shape-error message (~8 s)
+        for i in range(nd):  # element by element: a slice assignment compiles numba's shape-error message (~3 s)
             x[i] = new_x[i]
             for p in range(N_INFORMATION):
                 sens[i, p] = new_sens[i, p]

@@ -178,8 +178,10 @@ class RelinearizationSchedule:
         parameter states, P0) is run over ``rows``; it is returned if its mean NLL is below that of
         the pass in force over the same epochs.
         """
-        if self.open:
-            self.in_force.append(out.copy())  # scored only at a check: the node's epochs stay cheap
+        if not self.open:
+            self.in_force = []  # the window is over: nothing to score any more
+            return state
+        self.in_force.append(out.copy())  # scored only at a check: the node's epochs stay cheap
         if not (self.due(out, len(rows)) and self.moved(state)):
             return state
         rows = np.asarray(rows)  # the node's list of rows becomes a table only here

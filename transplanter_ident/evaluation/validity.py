@@ -49,7 +49,7 @@ from transplanter_ident.ekf.layout import (
     StepStatus,
 )
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
-from transplanter_ident.evaluation.validity_batch import decide_batch, delay_shifts, delay_shows
+from transplanter_ident.evaluation.validity_batch import decide_batch, delay_shift, delay_shifts, delay_shows
 
 #: s of data between two evaluations of the window checks
 RECHECK = 1.0
@@ -165,7 +165,7 @@ class ValidityMonitor:
                            "--estimate-delay")
         elif any(delay_shifts(sample.delay, sample.delay_std, sensitivity, rel_std, self.settings.max_delay_shift)
                  for sensitivity, rel_std in zip(sample.delay_sensitivity, relative, strict=True)):
-            shift = max(abs(s) for s in sample.delay_sensitivity) * max(abs(sample.delay) - sample.delay_std, 0.0)
+            shift = max(float(delay_shift(sample.delay, sample.delay_std, s)) for s in sample.delay_sensitivity)
             reasons.append(f"the innovations show a GNSS delay of {1e3 * sample.delay:+.0f} +- "
                            f"{1e3 * sample.delay_std:.0f} ms, which moves the stiffness by {100 * shift:.0f} % or more, "
                            "beyond its band: set gnss.delay, or tuner --estimate-delay")

@@ -43,15 +43,21 @@ def delay_shows(delay, std, sigmas: float):  # noqa: ANN001, ANN201 - floats or 
     return (std > 0.0) & (np.abs(delay) > sigmas * std)
 
 
-def delay_shifts(delay, std, sensitivity, rel_std, max_shift: float):  # noqa: ANN001, ANN201 - floats or arrays alike
-    """Whether the measured delay moves a stiffness beyond ``max_shift`` of its reported relative std.
+def delay_shift(delay, std, sensitivity):  # noqa: ANN001, ANN201 - floats or arrays alike
+    """The relative stiffness shift the measured delay implies at its lower 1-sigma bound.
 
-    The shift is the delay's lower 1-sigma bound, max(|delay| - std, 0), times the estimate's relative
-    error per second of delay (layout.O_DELAY_SENS_F/R): at 2 m/s ~2 % per ms, so a delay of 10 ms that
-    is not yet 3 std from zero (delay_shows) already moves the estimate several times its band.
+    max(|delay| - std, 0) times the estimate's relative error per second of delay (layout.O_DELAY_SENS_F/R).
     """
-    lower = np.maximum(np.abs(delay) - std, 0.0)
-    return (std > 0.0) & (np.abs(sensitivity) * lower > max_shift * rel_std)
+    return np.abs(sensitivity) * np.maximum(np.abs(delay) - std, 0.0)
+
+
+def delay_shifts(delay, std, sensitivity, rel_std, max_shift: float):  # noqa: ANN001, ANN201 - floats or arrays alike
+    """Whether the measured delay moves a stiffness (:func:`delay_shift`) beyond ``max_shift`` of its relative std.
+
+    At 2 m/s a stiffness moves ~2 % per ms, so a delay of 10 ms that is not yet 3 std from zero
+    (:func:`delay_shows`) already moves the estimate several times its band.
+    """
+    return (std > 0.0) & (delay_shift(delay, std, sensitivity) > max_shift * rel_std)
 
 
 def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever: float, recheck: float,

@@ -1,7 +1,7 @@
-"""Message adapters of the `estimator` node: input message types, field extraction, output and diagnostics messages.
+"""Message adapters of the `estimator` node: input QoS and types, field extraction, output and diagnostics messages.
 
-The inputs' QoS (:data:`INPUT_QOS`). The tables map each input message type the schema allows (``topics.*_type``, config/schema.py) to
-its rclpy class and to the function that feeds one message's fields to the
+:data:`INPUT_QOS` is the inputs' QoS. The tables map each input message type the schema allows
+(``topics.*_type``, config/schema.py) to its rclpy class and to the function that feeds one message's fields to the
 :class:`~transplanter_ident.epochs.assembler.EpochAssembler`, exactly as the bag reader does
 (:mod:`transplanter_ident.bags.messages`): a TwistWithCovarianceStamped or Odometry velocity with its
 covariance diagonal (the drivers' invalid markers), an Odometry twist as a body-frame velocity, every
