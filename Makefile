@@ -8,9 +8,9 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 export RMW_IMPLEMENTATION := rmw_fastrtps_cpp
 export PYTHONHASHSEED := 0
 
-.PHONY: venv test lint demo bench clean check-python
+.PHONY: venv warm test lint demo bench clean check-python
 
-venv: $(VENV)/.stamp
+venv: $(VENV)/.stamp $(VENV)/.warm
 
 check-python:
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "error: '$(PYTHON)' not found on PATH (need Python >= 3.10)" >&2; exit 1; }
@@ -24,13 +24,23 @@ $(VENV)/.stamp: requirements.txt setup.py setup.cfg package.xml
 	$(BIN)/python -m pip install --quiet -e . --no-deps
 	@touch $(VENV)/COLCON_IGNORE $@
 
+# numba's kernels compiled into its cache once per install and per change of the sources (the
+# cache folder is keyed by them), so no tool's first run compiles (transplanter_ident/cli/warm.py).
+PACKAGE_SOURCES := $(shell find transplanter_ident -name '*.py' 2>/dev/null)
+
+warm: $(VENV)/.warm
+
+$(VENV)/.warm: $(VENV)/.stamp $(PACKAGE_SOURCES)
+	$(BIN)/python -m transplanter_ident.cli.warm
+	@touch $@
+
 test: venv
 	$(BIN)/ruff check transplanter_ident test
 	@$(BIN)/python -m pytest -q test; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "error: pytest collected no tests (exit code 5); treating that as a failure" >&2; exit 1; fi; \
 	exit $$rc
 
-lint: venv
+lint: $(VENV)/.stamp
 	$(BIN)/ruff check .
 
 demo: venv

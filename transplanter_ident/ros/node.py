@@ -49,12 +49,12 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64
 from std_srvs.srv import Trigger
 
-from transplanter_ident.config.params_file import EstimatorParams, ParamsError, parameter_value
+from transplanter_ident.config.params_file import ParamsError, parameter_value
 from transplanter_ident.config.schema import PARAMS, SCHEMA, is_ros_builtin, unknown_key_message
-from transplanter_ident.ekf.joint_ekf import Estimate, JointEKF, run_sequence
+from transplanter_ident.ekf.joint_ekf import Estimate, JointEKF, warm_up
 from transplanter_ident.ekf.persistence import Keeper, LearnedState, default_path
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler
-from transplanter_ident.epochs.epoch import Epoch, EpochArrays, Rejection
+from transplanter_ident.epochs.epoch import Epoch, Rejection
 from transplanter_ident.evaluation.health import HealthMonitor, HealthReport, should_publish
 from transplanter_ident.evaluation.identifiability_report import identifiability_report
 from transplanter_ident.evaluation.validity import monitor_for, sample_of
@@ -84,7 +84,7 @@ class EstimatorNode(Node):
         self._settings = validate(self._flat)
         params = self._settings.params
         self._ekf = JointEKF(params.config)
-        _warm_up(params)
+        warm_up(params.config)
         self._assembler = EpochAssembler(AssemblerSettings.from_params(params))
         topics = params.topics
         self._topics = {"velocity": topics.velocity, "heading": topics.heading, "steering": topics.steering}
@@ -382,16 +382,3 @@ class EstimatorNode(Node):
                 publisher.wait_for_all_acked(Duration(seconds=SHUTDOWN_ACK_TIMEOUT))
         super().destroy_node()
 
-
-def _warm_up(params: EstimatorParams) -> None:
-    """Run the compiled filter step, the information sum and the run over epochs once, so no epoch waits.
-
-    A stall while a kernel loads lets the executor take one topic's backlog first; the run over epochs is
-    what a re-linearised pass takes (ekf/relinearization.py).
-    """
-    ekf = JointEKF(params.config)
-    epochs = [Epoch(t=t, longitudinal_velocity=1.0, lateral_velocity=0.0, heading=0.0, yaw_rate=0.0, steering=0.1,
-                    steering_rate=0.0, speed=1.0) for t in (0.0, 0.1, 1.2)]  # turned wheels: the bound is evaluated
-    for epoch in epochs:
-        ekf.step(epoch)
-    run_sequence(params.config, EpochArrays(epochs))
