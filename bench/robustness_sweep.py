@@ -24,9 +24,15 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 
 from drives import run_drive, sine_drive  # noqa: E402
-from test_validity import epochs_of, validity  # noqa: E402
+from test_validity import epochs_of  # noqa: E402
 
-from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, VehicleParams  # noqa: E402
+from transplanter_ident.config.parameters import (  # noqa: E402
+    EstimatorConfig,
+    FilterOptions,
+    ValiditySettings,
+    VehicleParams,
+)
+from transplanter_ident.evaluation.validity import decide_sequence  # noqa: E402
 from transplanter_ident.sim.signals import StiffnessSchedule, multisine_steering, sine_steering  # noqa: E402
 from transplanter_ident.sim.simulator import SensorNoise, simulate  # noqa: E402
 
@@ -47,6 +53,9 @@ ROWS: dict[str, dict[str, object]] = {
     "velocity noise 3x": {"noise": replace(NOISE, velocity=3.0 * NOISE.velocity)},
     "heading noise 1 deg": {"noise": replace(NOISE, heading=DEG(1.0))},
     "steering noise 0.5 deg": {"noise": replace(NOISE, steering=DEG(0.5))},
+    "GNSS errors correlated 0.5 s": {"noise": replace(NOISE, correlation_time=0.5)},
+    "GNSS errors correlated 2 s": {"noise": replace(NOISE, correlation_time=2.0)},
+    "GNSS 10 Hz, errors correlated 0.5 s": {"gnss_rate": 10.0, "noise": replace(NOISE, correlation_time=0.5)},
     "GNSS 10 Hz": {"gnss_rate": 10.0},
     "GNSS 2 Hz": {"gnss_rate": 2.0},
     "steering offset 2 deg": {"steering_offset": DEG(2.0)},
@@ -65,13 +74,16 @@ ROWS: dict[str, dict[str, object]] = {
 }
 
 
-def row_figures(overrides: dict[str, object], seeds: int, options: FilterOptions) -> str:
+def row_figures(overrides: dict[str, object], seeds: int, options: FilterOptions,
+                settings: ValiditySettings | None = None) -> str:
+    settings = settings or ValiditySettings()
     shares, finals = [], []
     for seed in range(seeds):
         sim = sine_drive(seed, **overrides)
         result = simulate(sim)
-        run = run_drive(result, EstimatorConfig(vehicle=sim.vehicle, options=options))
-        valid = validity(run, epochs_of(result))
+        config = EstimatorConfig(vehicle=sim.vehicle, options=options)
+        run = run_drive(result, config)
+        valid = decide_sequence(config, settings, epochs_of(result), run.outputs)
         after = run.t >= 30.0
         front, rear = run.covered()
         missed = ~(front & rear)
@@ -93,6 +105,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
                         help="a FilterOptions field (number) to set, e.g. saturation_prior=0 (repeatable)")
+    parser.add_argument("--validity", action="append", default=[], metavar="NAME=VALUE",
+                        help="a ValiditySettings field (number) to set, e.g. max_autocorrelation=1 (repeatable)")
     parser.add_argument("rows", nargs="*", help=f"rows to run (default: all): {', '.join(ROWS)}")
     args = parser.parse_args(argv)
     unknown = [r for r in args.rows if r not in ROWS]
@@ -100,13 +114,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unknown rows {unknown}" if unknown else "--seeds must be >= 1")
     try:
         options = replace(FilterOptions(), **{k: float(v) for k, v in (o.split("=", 1) for o in args.option)})
+        settings = replace(ValiditySettings(), **{k: float(v) for k, v in (o.split("=", 1) for o in args.validity)})
     except (TypeError, ValueError) as error:
-        parser.error(f"--option: {error}")
+        parser.error(f"--option/--validity: {error}")
     width = max(len(name) for name in ROWS)
-    print(f"seeds 0-{args.seeds - 1}, from 30 s on; defaults{''.join(' ' + o for o in args.option)}")
+    print(f"seeds 0-{args.seeds - 1}, from 30 s on; defaults{''.join(' ' + o for o in args.option + args.validity)}")
     print(f"{'condition':<{width}}  valid  valid&missed  valid&err>10%  missed  final |err| median, worst [%]")
     for name in args.rows or ROWS:
-        print(f"{name:<{width}}  {row_figures(ROWS[name], args.seeds, options)}", flush=True)
+        print(f"{name:<{width}}  {row_figures(ROWS[name], args.seeds, options, settings)}", flush=True)
     return 0
 
 

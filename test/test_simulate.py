@@ -157,3 +157,22 @@ def test_imperfection_flags_write_a_late_offset_gnss_first_bag(tmp_path: Path) -
     first_tie = next(i for i in range(1, len(order)) if order[i][1] == order[i - 1][1]
                      and {order[i][0], order[i - 1][0]} == {"/gnss/heading", "/steering_angle"})
     assert order[first_tie][0] == "/steering_angle"
+
+
+def test_gnss_correlation_time_flag_gives_the_simulators_correlated_errors(tmp_path: Path) -> None:
+    """--gnss-correlation-time 2: the bag's headings are the simulator's with Gauss-Markov errors (test_sim.py)."""
+    from dataclasses import replace
+
+    from transplanter_ident.epochs.frames import wrap_angle
+    from transplanter_ident.sim.simulator import SensorNoise, simulate
+
+    bag = tmp_path / "correlated"
+    result = run("simulate", "-o", bag, "--scenario", "sine", "--duration", "20", "--seed", "3",
+                 "--gnss-correlation-time", "2")
+    assert result.returncode == 0, result.stderr
+    headings = np.array([2.0 * math.atan2(m.quaternion.z, m.quaternion.w) for m in messages(bag, "/gnss/heading")])
+    config = build_config("sine", duration=20.0, seed=3)
+    correlated = simulate(replace(config, noise=SensorNoise(correlation_time=2.0)))
+    white = simulate(config)
+    np.testing.assert_allclose(wrap_angle(headings - correlated.heading), 0.0, atol=1e-9)
+    assert np.max(np.abs(wrap_angle(headings - white.heading))) > 1e-4

@@ -221,7 +221,8 @@ class ValidityMonitor:
             rho = _lag1_autocorrelation([w.whitened_vy for w in predicted])
             if rho > s.max_autocorrelation:
                 reasons.append(f"innovations correlated in time (lag-1 {rho:.2f}): an unconfigured GNSS delay "
-                               "(gnss.delay) or lever arm?")
+                               "(gnss.delay) or lever arm, or GNSS errors correlated in time (a receiver smoothing "
+                               "its velocity or heading), which the filter takes as white?")
         return reasons
 
 

@@ -52,14 +52,21 @@ _MAX_STEP_STIFFNESS = 1.0
 
 @dataclass(frozen=True)
 class SensorNoise:
-    """1-sigma Gaussian sensor noise."""
+    """1-sigma Gaussian sensor noise; the GNSS errors white, or first-order Gauss-Markov.
+
+    ``correlation_time`` > 0: each GNSS error follows e_k = a e_(k-1) + sqrt(1 - a^2) w_k,
+    a = exp(-dt / correlation_time), with the same 1-sigma (a receiver's own filter smooths its
+    velocity and heading; multipath drifts slowly). The draws w are the white case's, so a seed
+    gives the same noise at 0.
+    """
 
     velocity: float = 0.02  # m/s per axis, GNSS velocity (ENU)
     heading: float = math.radians(0.2)  # rad
     steering: float = math.radians(0.1)  # rad, steering-angle sensor
+    correlation_time: float = 0.0  # s, of the GNSS velocity and heading errors (0: white)
 
     def __post_init__(self) -> None:
-        check_fields(self, "noise", non_negative=("velocity", "heading", "steering"))
+        check_fields(self, "noise", non_negative=("velocity", "heading", "steering", "correlation_time"))
 
 
 @dataclass(frozen=True)
@@ -158,8 +165,10 @@ def simulate(config: SimConfig) -> SimResult:
     noise = config.noise
     start, end, factor = config.gnss_degraded
     scale = np.where((gnss_time >= start) & (gnss_time < end), factor, 1.0)
-    vel_meas = vel_enu + (noise.velocity * scale)[:, None] * rng.standard_normal(vel_enu.shape)
-    heading_meas = wrap_angle(psi + noise.heading * scale * rng.standard_normal(psi.shape))
+    vel_errors = _correlated(rng.standard_normal(vel_enu.shape), gnss_time, noise.correlation_time)
+    vel_meas = vel_enu + (noise.velocity * scale)[:, None] * vel_errors
+    heading_errors = _correlated(rng.standard_normal(psi.shape), gnss_time, noise.correlation_time)
+    heading_meas = wrap_angle(psi + noise.heading * scale * heading_errors)
     steer_meas = _evaluate(config.steering, steering_time) + noise.steering * rng.standard_normal(
         steering_time.shape
     ) + config.steering_offset
@@ -181,6 +190,17 @@ def simulate(config: SimConfig) -> SimResult:
         velocity_std=noise.velocity * scale,
         heading_std=noise.heading * scale,
     )
+
+
+def _correlated(white: np.ndarray, t: np.ndarray, correlation_time: float) -> np.ndarray:
+    """Unit-variance first-order Gauss-Markov errors from unit white draws (rows: samples at t)."""
+    if correlation_time <= 0.0 or len(t) < 2:
+        return white
+    a = np.exp(-np.diff(t) / correlation_time)
+    out = np.array(white, dtype=float)
+    for k in range(1, len(t)):
+        out[k] = a[k - 1] * out[k - 1] + math.sqrt(1.0 - a[k - 1] ** 2) * white[k]
+    return out
 
 
 def antenna_velocity_enu(
