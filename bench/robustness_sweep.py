@@ -68,6 +68,8 @@ ROWS: dict[str, dict[str, object]] = {
     "tanh tire, mu 0.3, 3 m/s": {"tire": "saturating", "friction": 0.3, "speed": 3.0},
     "soft tires (3000/4000)": {"stiffness": StiffnessSchedule(front=(3000.0,), rear=(4000.0,))},
     "stiff tires (30000/40000)": {"stiffness": StiffnessSchedule(front=(30000.0,), rear=(40000.0,))},
+    "side slope 2 deg": {"bank_angle": DEG(2.0)},
+    "side slope 5 deg": {"bank_angle": DEG(5.0)},
     "heavier, longer vehicle": {"vehicle": VehicleParams(mass=1400.0, lf=0.9, lr=0.6)},
     "stiffness drifting -40 % over 4 min": {"duration": 240.0, "stiffness": StiffnessSchedule(
         times=(0.0, 240.0), front=(8000.0, 4800.0), rear=(10000.0, 6000.0), transition=240.0)},

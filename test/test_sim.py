@@ -61,6 +61,21 @@ def test_steady_state_matches_eq4():
     np.testing.assert_allclose(np.hypot(*result.velocity_enu.T), speed, rtol=0.0, atol=1e-12)
 
 
+def test_a_side_slope_adds_g_sin_bank_to_the_lateral_acceleration():
+    """Straight wheels on a 5 deg cross slope: the steady state solves A x = -[g sin(bank), 0] (eq. 4 plus gravity)."""
+    bank = math.radians(5.0)
+    config = SimConfig(duration=10.0, speed=2.0, steering=constant(0.0), noise=NO_NOISE, bank_angle=bank)
+    result = simulate(config)
+    vehicle, cf, cr, vx = config.vehicle, 8000.0, 10000.0, 2.0
+    m, iz, lf, lr = vehicle.mass, vehicle.yaw_inertia, vehicle.lf, vehicle.lr
+    a = np.array([[-(2 * cf + 2 * cr) / (m * vx), -vx - (2 * cf * lf - 2 * cr * lr) / (m * vx)],
+                  [(2 * cr * lr - 2 * cf * lf) / (iz * vx), -(2 * lf**2 * cf + 2 * lr**2 * cr) / (iz * vx)]])
+    vy_ss, r_ss = np.linalg.solve(a, -np.array([GRAVITY * math.sin(bank), 0.0]))
+    assert result.truth_vy[-1] == pytest.approx(vy_ss, rel=1e-6)
+    assert result.truth_yaw_rate[-1] == pytest.approx(r_ss, rel=1e-6)
+    assert vy_ss > 0.0  # the slope pushes the vehicle to the left (+y)
+
+
 def test_steady_state_at_very_low_speed_is_stable():
     # At 0.03 m/s the fastest lateral mode is ~ -2000 1/s: h*lambda = -4 at 2 ms, outside RK4's
     # stability region, so this diverges unless the step is refined.

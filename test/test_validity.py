@@ -45,6 +45,8 @@ SCENARIOS = {
     "wet field (mu 0.3, tanh tire)": {"tire": "saturating", "friction": 0.3},
     "GNSS errors correlated 0.5 s": {"noise": SensorNoise(correlation_time=0.5)},
     "GNSS errors correlated 2 s": {"noise": SensorNoise(correlation_time=2.0)},
+    "side slope 2 deg": {"bank_angle": math.radians(2.0)},  # the offset state takes it up: valid ~60 %
+    "side slope 5 deg": {"bank_angle": math.radians(5.0)},  # the NIS shows the model's error: never valid
 }
 
 

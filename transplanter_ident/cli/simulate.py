@@ -68,6 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
     imperfect.add_argument("--gnss-correlation-time", metavar="S", type=float,
                            help="GNSS velocity and heading errors correlated in time (first-order Gauss-Markov, "
                                 "this time constant, the same 1-sigma; default 0: white)")
+    imperfect.add_argument("--side-slope", metavar="RAD", type=float,
+                           help="a cross slope along the path: gravity adds g sin(slope) to the lateral "
+                                "acceleration (+: to the left; default 0)")
     imperfect.add_argument("--gnss-first", action="store_true",
                            help="log each GNSS message before the steering sample of the same instant")
     enc = parser.add_argument_group("message types, frames, topics and drivers (issue #12)")
@@ -149,6 +152,8 @@ def _run(args: argparse.Namespace) -> int:
                               gnss_delay=delay)
         if args.gnss_degraded:
             config = replace(config, gnss_degraded=tuple(args.gnss_degraded))
+        if args.side_slope is not None:
+            config = replace(config, bank_angle=args.side_slope)
         if args.gnss_correlation_time is not None:
             config = replace(config, noise=replace(config.noise, correlation_time=args.gnss_correlation_time))
         options = SimBagOptions(start_time=args.start_time, truth=not args.no_truth, compress=args.compress,

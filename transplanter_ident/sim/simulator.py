@@ -91,6 +91,8 @@ class SimConfig:
     small_angle: bool = True  # cos(delta) -> 1, so linear tires reproduce eq. (4) exactly
     steering_offset: float = 0.0  # rad: the steering sensor reads the wheel angle + this
     gnss_delay: float = 0.0  # s: GNSS messages are stamped this late (the motion is at stamp - delay)
+    #: rad: a cross slope along the path (a field's side slope): gravity adds g sin(bank) to dvy/dt (+: to the left)
+    bank_angle: float = 0.0
     #: (start s, end s, factor): the GNSS velocity and heading noise is this many times larger in the window
     #: (an RTK fix lost to float); the result's velocity_std/heading_std say what was applied
     gnss_degraded: tuple[float, float, float] = (0.0, 0.0, 1.0)
@@ -104,6 +106,7 @@ class SimConfig:
         require_finite("initial_heading", self.initial_heading)
         require_finite("steering_offset", self.steering_offset)
         require_finite("gnss_delay", self.gnss_delay)
+        require_finite("bank_angle", self.bank_angle)
         if not (len(self.gnss_degraded) == 3 and all(math.isfinite(v) for v in self.gnss_degraded)
                 and self.gnss_degraded[2] > 0.0):
             raise ValueError(f"gnss_degraded must be (start, end, factor > 0), got {self.gnss_degraded!r}")
@@ -306,13 +309,14 @@ def _derivative(config: SimConfig, inputs: _Inputs) -> Callable[[float, float, i
     front = (2.0 * cos_delta / m).tolist()  # 2 cos(delta) / m
     front_yaw = (2.0 * lf * cos_delta / iz).tolist()  # 2 lf cos(delta) / Iz
     rear, rear_yaw = 2.0 / m, -2.0 * lr / iz
+    slope = GRAVITY * math.sin(config.bank_angle)
 
     if config.tire == "linear":
 
         def linear(vy: float, r: float, i: int) -> tuple[float, float]:
             force_f = cf[i] * (delta[i] - (vy + lf * r) * inv_vx[i])
             force_r = cr[i] * ((lr * r - vy) * inv_vx[i])
-            return front[i] * force_f + rear * force_r - vx[i] * r, front_yaw[
+            return front[i] * force_f + rear * force_r - vx[i] * r + slope, front_yaw[
                 i
             ] * force_f + rear_yaw * force_r
 
@@ -324,7 +328,8 @@ def _derivative(config: SimConfig, inputs: _Inputs) -> Callable[[float, float, i
     def saturating(vy: float, r: float, i: int) -> tuple[float, float]:
         force_f = fmax_f * tanh(cf[i] * (delta[i] - (vy + lf * r) * inv_vx[i]) / fmax_f)
         force_r = fmax_r * tanh(cr[i] * ((lr * r - vy) * inv_vx[i]) / fmax_r)
-        return front[i] * force_f + rear * force_r - vx[i] * r, front_yaw[i] * force_f + rear_yaw * force_r
+        return (front[i] * force_f + rear * force_r - vx[i] * r + slope,
+                front_yaw[i] * force_f + rear_yaw * force_r)
 
     return saturating
 
