@@ -117,10 +117,11 @@ def test_a_measured_delay_makes_the_estimate_invalid_and_says_so() -> None:
 
 
 def test_a_delay_that_moves_the_stiffness_beyond_its_band_is_not_valid() -> None:
-    """10 ms late, unconfigured (Cf ~ -18 %): valid in <= 15 % of the epochs from 30 s on, seeds 0-9.
+    """10 ms late, unconfigured (Cf ~ -18 %): valid in <= 8 % of the epochs from 30 s on, seeds 0-9.
 
-    Measured 11 %; 31 % without the shift check (validity.max_delay_shift 100). The reason says by how much
-    the delay moves the stiffness. The same drives without the delay lose <= 5 points (measured 92 -> 90 %).
+    Measured 4.1 % (11 % when the measure started after 20 s of data instead of 10); 29 % without the
+    shift check (validity.max_delay_shift 100). The reason says by how much the delay moves the
+    stiffness. The same drives without the delay lose <= 3 points (measured 92.7 -> 92.5 %).
     """
     without = ValiditySettings(max_delay_shift=100.0)
     shares: dict[tuple[float, bool], list[float]] = {}
@@ -133,8 +134,8 @@ def test_a_delay_that_moves_the_stiffness_beyond_its_band_is_not_valid() -> None
                 shares.setdefault((delay, checked), []).append(np.mean(valid[run.t >= 30.0]))
     late, late_unchecked = np.mean(shares[0.01, True]), np.mean(shares[0.01, False])
     clean, clean_unchecked = np.mean(shares[0.0, True]), np.mean(shares[0.0, False])
-    assert late <= 0.15 and late_unchecked >= 2.0 * late, (late, late_unchecked)
-    assert clean >= clean_unchecked - 0.05, (clean, clean_unchecked)
+    assert late <= 0.08 and late_unchecked >= 2.0 * late, (late, late_unchecked)
+    assert clean >= clean_unchecked - 0.03, (clean, clean_unchecked)
     result = simulate(sine_drive(1, gnss_delay=0.01))
     run, monitor = run_drive(result), monitor_for(EstimatorConfig(), ValiditySettings())
     reasons = [r for k, epoch in enumerate(epochs_of(result)) for r in monitor.step(sample_of(epoch, run.outputs[k])).reasons]
@@ -144,7 +145,7 @@ def test_a_delay_that_moves_the_stiffness_beyond_its_band_is_not_valid() -> None
 def test_long_clean_drives_rarely_show_a_delay() -> None:
     """10 seeds x 10 min without a delay: the measure is beyond 3 std in <= 0.5 % of epochs, never beyond 4.
 
-    Measured: 0 on the sine, 0.4 % on the multisine drive.
+    Measured: 0 on the sine and on the multisine drive (largest 2.4 and 2.2 std).
     """
     multisine = multisine_steering(math.radians(10.0), (3.0, 5.0, 9.0, 14.0), seed=3)
     for overrides in ({}, {"steering": multisine}):

@@ -250,7 +250,7 @@ def learn_noise_scales(memo, settings, dt, e0, e1, prior0, prior1, noise0, noise
 
 #: s of accepted data before the delay is scored: the filter's own start (offset and stiffness converging
 #: from their priors) is not the small, linear response the bias propagation describes
-DELAY_SETTLE = 20.0
+DELAY_SETTLE = 10.0
 
 
 @inline_kernel
