@@ -2,8 +2,8 @@
 
 Without it the first run of a tool on a machine compiles the filter step (paper eqs. 9-14) and
 the tuner's objective (eqs. 21-22) as it goes: the tuner's first run on a 10-minute bag takes
-~35 s instead of ~11 s (``bench/tuner_bench.py``), the node's start-up ~20 s. This runs what a
-user runs, on a short simulated drive, so every kernel those runs need is compiled here:
+~38 s instead of ~11 s (``bench/tuner_bench.py``), and the node compiles before it subscribes. This
+runs what a user runs, on a short simulated drive, so every kernel those runs need is compiled here:
 
 1. ``tuner`` with the defaults (a tiny IPSO swarm, eqs. 15-20, with its report: Table 2, the
    Cramér-Rao bound, the validity), on all cores as a user's run;
@@ -60,6 +60,7 @@ def _paper_configuration(bag: Path) -> None:
 
 
 def _node_warm_up() -> None:
+    """What the node runs before it subscribes (the default parameters)."""
     from transplanter_ident.config.params_file import EstimatorParams
     from transplanter_ident.ekf.joint_ekf import warm_up
 
