@@ -1,18 +1,22 @@
 """The numba disk cache gives the right kernel for each state size (issue #9, item 5).
 
 The per-size closures are not cached (numba keys a cached closure by name and source line, which
-every size shares); the module-level entries are. Here kernels of both state sizes are compiled
-into one fresh cache folder and loaded back from it, in alternating orders, in separate processes:
-every run must give the same numbers as the first, compiling one.
+every size shares); the module-level entries are. Here one cache folder that `warm` filled with the
+kernels of both state sizes (conftest's ``warmed_numba_cache``, a copy) is loaded back, in
+alternating orders, in separate processes: every run must give the numbers of the same code run
+as plain Python (``NUMBA_DISABLE_JIT=1``, no cache involved).
 """
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -32,24 +36,29 @@ print(json.dumps(values))
 """
 
 
-def run(order: str, cache: Path, program: str = PROGRAM) -> dict:
-    """The JSON line ``program`` prints, run with ``order`` in a fresh process on the numba cache ``cache``."""
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "PYTHONPATH": str(ROOT)}
+def run(order: str, cache: Path | None, program: str = PROGRAM) -> dict:
+    """The JSON line ``program`` prints, run with ``order`` in a fresh process on the numba cache ``cache``.
+
+    ``cache`` None: numba's compiler off (``NUMBA_DISABLE_JIT=1``), the kernels run as Python.
+    """
+    extra = {"NUMBA_CACHE_DIR": str(cache)} if cache is not None else {"NUMBA_DISABLE_JIT": "1"}
+    env = {**os.environ, **extra, "PYTHONPATH": str(ROOT)}
     result = subprocess.run([sys.executable, "-c", program.format(test=str(ROOT / "test")), order],
                             capture_output=True, text=True, timeout=900, env=env, cwd=ROOT)
     assert result.returncode == 0, result.stderr[-2000:]
     return json.loads(result.stdout.strip().splitlines()[-1])
 
 
-def test_both_state_sizes_load_their_own_kernels_from_one_cache_folder(tmp_path: Path) -> None:
-    cache = tmp_path / "numba-cache"
-    first = run("heading,yaw_rate", cache)  # compiles both sizes into the folder
+def test_both_state_sizes_load_their_own_kernels_from_one_cache_folder(warmed_numba_cache: Path,
+                                                                      tmp_path: Path) -> None:
+    cache = shutil.copytree(warmed_numba_cache, tmp_path / "numba-cache")
     assert any(cache.rglob("*.nbi")), "nothing was cached"
-    assert first["heading"] != first["yaw_rate"]  # the two filters do differ, so a mix-up would show
-    for order in ("yaw_rate,heading", "heading", "yaw_rate", "heading,yaw_rate"):  # loaded back, alternately
-        again = run(order, cache)
-        for measurement, values in again.items():
-            assert values == first[measurement], (order, measurement)
+    python = run("heading,yaw_rate", None)  # the reference: the same code as plain Python
+    assert python["heading"] != python["yaw_rate"]  # the two filters do differ, so a mix-up would show
+    for order in ("heading,yaw_rate", "yaw_rate,heading", "heading", "yaw_rate"):  # loaded back, alternately
+        loaded = run(order, cache)
+        for measurement, values in loaded.items():
+            assert values == pytest.approx(python[measurement], rel=1e-12, abs=0.0), (order, measurement)
 
 
 LEAN_PROGRAM = """
@@ -69,14 +78,15 @@ print(json.dumps({{"lean": lean, "registries": "numba.np.linalg" in sys.modules,
 """
 
 
-def test_the_nodes_lean_loading_gives_the_same_filter(tmp_path: Path) -> None:
+def test_the_nodes_lean_loading_gives_the_same_filter(warmed_numba_cache: Path, tmp_path: Path) -> None:
     """load_cached_kernels_lean (the node's): the same numbers from the cache, and from a cold cache.
 
-    From a filled cache it skips numba's registries (what saves the memory); on a cache miss numba
-    compiles as usual.
+    From a filled cache (`warm`'s, a copy) it skips numba's registries (what saves the memory); on a
+    cache miss numba compiles as usual.
     """
-    plain = run("plain", tmp_path / "cache", LEAN_PROGRAM)  # compiles into the folder
-    lean = run("lean", tmp_path / "cache", LEAN_PROGRAM)
+    cache = shutil.copytree(warmed_numba_cache, tmp_path / "cache")
+    plain = run("plain", cache, LEAN_PROGRAM)
+    lean = run("lean", cache, LEAN_PROGRAM)
     assert lean["lean"] and not lean["registries"] and plain["registries"]
     assert lean["rows"] == plain["rows"] and len(plain["rows"]) > 50
     cold = run("lean", tmp_path / "cold-cache", LEAN_PROGRAM)

@@ -1,8 +1,8 @@
 """`warm` (cli/warm.py, run by `make venv`): after it, the tools' first runs compile nothing.
 
-Checked as a user meets it, in an empty numba cache folder of its own: `warm` fills it, then the
-tuner (its default worker pool included), replay writing an output bag, and the node's warm-up
-run in a fresh process. numba's compile events in that process, and the cache folder's files
+Checked as a user meets it: `warm` fills an empty numba cache folder (conftest's
+``warmed_numba_cache``; this test works on a copy), then the tuner (its default worker pool
+included), replay writing an output bag, and the node's warm-up run in a fresh process. numba's compile events in that process, and the cache folder's files
 (a worker that compiled would add or rewrite some), show whether anything was compiled. Not
 timed: ``bench/tuner_bench.py`` times the tuner's first run after `warm`.
 """
@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -39,14 +40,9 @@ def _files(folder: Path) -> dict[str, tuple[int, int]]:
             for p in folder.rglob("*") if p.is_file()}
 
 
-def test_after_warm_the_tuner_replay_and_node_compile_nothing(tmp_path: Path) -> None:
-    cache = tmp_path / "numba_cache"
-    cache.mkdir()
+def test_after_warm_the_tuner_replay_and_node_compile_nothing(warmed_numba_cache: Path, tmp_path: Path) -> None:
+    cache = shutil.copytree(warmed_numba_cache, tmp_path / "numba_cache")
     env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
-    warm = subprocess.run([sys.executable, "-m", "transplanter_ident.cli.warm"], capture_output=True, text=True,
-                          env=env, cwd=ROOT, timeout=900)
-    assert warm.returncode == 0, warm.stderr[-3000:]
-    assert "numba's cache is filled" in warm.stdout
     filled = _files(cache)
     assert any(name.endswith(".nbc") for name in filled), "warm cached no kernel"
 
