@@ -29,6 +29,7 @@ setup(
             f"tuner = {PACKAGE}.cli.tuner:main",
             f"replay = {PACKAGE}.cli.replay:main",
             f"simulate = {PACKAGE}.cli.simulate:main",
+            f"warm = {PACKAGE}.cli.warm:main",
         ],
     },
 )

@@ -1,7 +1,7 @@
 """The colcon layout `ros2 run` and `ros2 launch` need (DESIGN.md sections 3 and 4).
 
 `colcon build` (colcon-common-extensions from PyPI, in the venv) on a copy of the package must
-put the four executables in install/transplanter_ident/lib/transplanter_ident/, register the
+put the five executables in install/transplanter_ident/lib/transplanter_ident/, register the
 package in the ament index, and install config/ and launch/ under share/transplanter_ident.
 """
 
@@ -18,7 +18,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = "transplanter_ident"
-EXECUTABLES = ("estimator", "tuner", "replay", "simulate")
+EXECUTABLES = ("estimator", "tuner", "replay", "simulate", "warm")
 SOURCES = ("setup.py", "setup.cfg", "package.xml", "resource", "config", "launch", PACKAGE)
 
 

@@ -13,7 +13,7 @@ import pytest
 import transplanter_ident
 
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPTS = ("estimator", "tuner", "replay", "simulate")
+SCRIPTS = ("estimator", "tuner", "replay", "simulate", "warm")
 
 
 @pytest.mark.parametrize("name", SCRIPTS)
