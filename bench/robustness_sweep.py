@@ -107,6 +107,11 @@ def row_figures(overrides: dict[str, object], seeds: int, options: FilterOptions
             f"{100 * np.median(finals):8.1f} {100 * np.max(finals):6.1f}")
 
 
+def _with(base: object, pairs: list[str]) -> object:
+    """``base`` with the numeric fields of ``NAME=VALUE`` pairs replaced."""
+    return replace(base, **{k: float(v) for k, v in (o.split("=", 1) for o in pairs)})
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=5)
@@ -120,8 +125,8 @@ def main(argv: list[str] | None = None) -> int:
     if unknown or args.seeds < 1:
         parser.error(f"unknown rows {unknown}" if unknown else "--seeds must be >= 1")
     try:
-        options = replace(FilterOptions(), **{k: float(v) for k, v in (o.split("=", 1) for o in args.option)})
-        settings = replace(ValiditySettings(), **{k: float(v) for k, v in (o.split("=", 1) for o in args.validity)})
+        options = _with(FilterOptions(), args.option)
+        settings = _with(ValiditySettings(), args.validity)
     except (TypeError, ValueError) as error:
         parser.error(f"--option/--validity: {error}")
     width = max(len(name) for name in ROWS)

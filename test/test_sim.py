@@ -27,17 +27,21 @@ def constant(value: float):
     return lambda t: np.full(np.shape(t), value, dtype=float)
 
 
-def eq4_steady_state(vehicle: VehicleParams, cf: float, cr: float, vx: float, delta: float) -> np.ndarray:
-    """[vy, r] solving A x = -B delta with A, B of eq. (4)."""
+def eq4_matrix(vehicle: VehicleParams, cf: float, cr: float, vx: float) -> np.ndarray:
+    """A of eq. (4) for the state [vy, r]."""
     m, iz, lf, lr = vehicle.mass, vehicle.yaw_inertia, vehicle.lf, vehicle.lr
-    a = np.array(
+    return np.array(
         [
             [-(2 * cf + 2 * cr) / (m * vx), -vx - (2 * cf * lf - 2 * cr * lr) / (m * vx)],
             [(2 * cr * lr - 2 * cf * lf) / (iz * vx), -(2 * lf**2 * cf + 2 * lr**2 * cr) / (iz * vx)],
         ]
     )
-    b = np.array([2 * cf / m, 2 * cf * lf / iz])
-    return np.linalg.solve(a, -b * delta)
+
+
+def eq4_steady_state(vehicle: VehicleParams, cf: float, cr: float, vx: float, delta: float) -> np.ndarray:
+    """[vy, r] solving A x = -B delta with A, B of eq. (4)."""
+    b = np.array([2 * cf / vehicle.mass, 2 * cf * vehicle.lf / vehicle.yaw_inertia])
+    return np.linalg.solve(eq4_matrix(vehicle, cf, cr, vx), -b * delta)
 
 
 def body_velocity(result) -> tuple[np.ndarray, np.ndarray]:
@@ -66,10 +70,7 @@ def test_a_side_slope_adds_g_sin_bank_to_the_lateral_acceleration():
     bank = math.radians(5.0)
     config = SimConfig(duration=10.0, speed=2.0, steering=constant(0.0), noise=NO_NOISE, bank_angle=bank)
     result = simulate(config)
-    vehicle, cf, cr, vx = config.vehicle, 8000.0, 10000.0, 2.0
-    m, iz, lf, lr = vehicle.mass, vehicle.yaw_inertia, vehicle.lf, vehicle.lr
-    a = np.array([[-(2 * cf + 2 * cr) / (m * vx), -vx - (2 * cf * lf - 2 * cr * lr) / (m * vx)],
-                  [(2 * cr * lr - 2 * cf * lf) / (iz * vx), -(2 * lf**2 * cf + 2 * lr**2 * cr) / (iz * vx)]])
+    a = eq4_matrix(config.vehicle, 8000.0, 10000.0, 2.0)
     vy_ss, r_ss = np.linalg.solve(a, -np.array([GRAVITY * math.sin(bank), 0.0]))
     assert result.truth_vy[-1] == pytest.approx(vy_ss, rel=1e-6)
     assert result.truth_yaw_rate[-1] == pytest.approx(r_ss, rel=1e-6)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -11,8 +12,9 @@ from helpers import run_command as run
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
+from transplanter_ident.epochs.frames import wrap_angle
 from transplanter_ident.sim.scenarios import SCENARIOS, build_config
-from transplanter_ident.sim.simulator import SimConfig
+from transplanter_ident.sim.simulator import SensorNoise, SimConfig, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 TS = get_typestore(Stores.ROS2_JAZZY)
@@ -161,11 +163,6 @@ def test_imperfection_flags_write_a_late_offset_gnss_first_bag(tmp_path: Path) -
 
 def test_gnss_correlation_time_flag_gives_the_simulators_correlated_errors(tmp_path: Path) -> None:
     """--gnss-correlation-time 2: the bag's headings are the simulator's with Gauss-Markov errors (test_sim.py)."""
-    from dataclasses import replace
-
-    from transplanter_ident.epochs.frames import wrap_angle
-    from transplanter_ident.sim.simulator import SensorNoise, simulate
-
     bag = tmp_path / "correlated"
     result = run("simulate", "-o", bag, "--scenario", "sine", "--duration", "20", "--seed", "3",
                  "--gnss-correlation-time", "2")

@@ -2,9 +2,10 @@
 
 Checked as a user meets it: `warm` fills an empty numba cache folder (conftest's
 ``warmed_numba_cache``; this test works on a copy), then the tuner (its default worker pool
-included), replay writing an output bag, and the node's warm-up run in a fresh process. numba's compile events in that process, and the cache folder's files
-(a worker that compiled would add or rewrite some), show whether anything was compiled. Not
-timed: ``bench/tuner_bench.py`` times the tuner's first run after `warm`.
+included), replay writing an output bag, and the node's warm-up run in a fresh process. numba's
+compile events in that process, and the cache folder's files (a worker that compiled would add or
+rewrite some), show whether anything was compiled. Not timed: ``bench/tuner_bench.py`` times the
+tuner's first run after `warm`.
 """
 
 from __future__ import annotations
