@@ -6,6 +6,7 @@ import math
 import os
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
@@ -14,7 +15,7 @@ import pytest
 
 import transplanter_ident.cli.tuner as tuner
 from transplanter_ident.config.params_file import EstimatorParams, read_params_file
-from transplanter_ident.tuning.multi import MultiBagProblem, fold_seed
+from transplanter_ident.tuning.multi import HoldOut, LeaveOneOut, MultiBagProblem, fold_seed
 from transplanter_ident.tuning.parallel import ProcessBackend, SerialBackend, plan_chunks
 from transplanter_ident.tuning.problem import TuningProblem
 
@@ -75,6 +76,8 @@ def test_bags_must_share_the_configuration(sim_epochs) -> None:  # noqa: ANN001
     nll = TuningProblem.from_epochs(config, sim_epochs[1], "nll")
     with pytest.raises(ValueError, match="share"):
         MultiBagProblem((mae, nll))
+    with pytest.raises(ValueError, match="span"):
+        MultiBagProblem((nll, TuningProblem.from_epochs(config, sim_epochs[1], "nll", q_span=2.0)))
     with pytest.raises(ValueError, match="at least one"):
         MultiBagProblem(())
 
@@ -185,6 +188,17 @@ def test_serial_backend_restores_the_thread_count(sim_epochs) -> None:  # noqa: 
     assert numba.get_num_threads() == before
 
 
+def test_wins_count_bags_where_multi_bag_is_not_worse_on_both_stiffnesses() -> None:
+    rows = (HoldOut("a", 10, (0.0, 0.0, 0.0), (0.10, -0.02, 0.05), (0.01, 0.01, -0.01), (0.05, 0.02)),
+            HoldOut("b", 10, (0.0, 0.0, 0.0), (0.01, 0.03, -0.02), (0.01, 0.01, 0.01), (0.01, 0.10)),
+            HoldOut("c", 10, (0.0, 0.0, 0.0), None, None, None))
+    table = LeaveOneOut("nll", rows)
+    assert table.wins() == (2, 1, 1, 1)  # a: <= default and <= one other; b: <= single only
+    text = table.format()
+    assert "on 1/2 bags, <= single-bag (in-sample) on 1/2, <= single-bag tuned on one other bag (median) on 1/2" in text
+    assert " 5.0% " in text and "10.0%" in text  # the 'one other' medians, unsigned
+
+
 def test_fold_seeds_differ_and_repeat() -> None:
     seeds = {fold_seed(3, kind, i) for kind in (1, 2) for i in range(5)}
     assert len(seeds) == 10 and fold_seed(3, 1, 0) == fold_seed(3, 1, 0)
@@ -211,8 +225,8 @@ def test_cli_tunes_several_bags_with_a_leave_one_out_table(sim_bags, tmp_path, c
     table = captured.out.split("Leave-one-bag-out", 1)[1].splitlines()
     rows = [line for line in table if line.startswith(str(sim_bags[0].parent))]
     assert len(rows) == 3
-    for row in rows:  # objective x3 and the Cf, Cr errors x3 (the bags have ground truth)
-        assert row.count("%") == 6, row
+    for row in rows:  # objective x3 and the Cf, Cr errors x4 (the bags have ground truth)
+        assert row.count("%") == 8, row
     assert "held-out |error| of Cf and Cr with multi-bag Q/R" in captured.out
     assert captured.err.count("leave-one-out ") == 3
     assert sum(line.startswith("iteration") for line in captured.err.splitlines()) == 4  # the main run only
@@ -228,8 +242,9 @@ def test_cli_tunes_several_bags_with_a_leave_one_out_table(sim_bags, tmp_path, c
 def test_no_leave_one_out_and_cmaes(sim_bags, tmp_path, capsys) -> None:  # noqa: ANN001
     out = tmp_path / "cmaes.yaml"
     assert _tuner(*sim_bags[:2], "-o", out, "--algorithm", "cmaes", "--particles", "5", "--iterations", "2",
-                  "--seed", "1", "--jobs", "1", "--no-leave-one-out", "--no-epoch-cache") == 0
+                  "--seed", "1", "--jobs", "1", "--no-leave-one-out", "--no-epoch-cache", "--q-span", "inf") == 0
     captured = capsys.readouterr()
+    assert "# Q searched over the whole box (tuner --q-span inf)" in out.read_text()
     assert "Leave-one-bag-out" not in captured.out and "cmaes: nll" in captured.out
     assert "algorithm: cmaes" in out.read_text()
     assert sum(line.startswith("iteration") for line in captured.err.splitlines()) == 3
@@ -288,10 +303,62 @@ def test_unreachable_dask_scheduler_is_one_line(sim_bags, tmp_path, capsys, monk
     assert not (tmp_path / "o.yaml").exists()
 
 
-@pytest.mark.parametrize("flags", [["--jobs", "0"], ["--jobs", "x"], ["--algorithm", "cma"]])
+@pytest.mark.parametrize("flags", [["--jobs", "0"], ["--jobs", "x"], ["--algorithm", "cma"], ["--q-span", "0"],
+                                   ["--q-span", "nan"], ["--q-span", "-1"], ["--q-span", "x"]])
 def test_invalid_new_flags_are_one_line(flags: list[str], tmp_path, capsys) -> None:  # noqa: ANN001
     with pytest.raises(SystemExit) as exc:
         tuner.main(["bag", "-o", str(tmp_path / "o.yaml"), *flags])
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("tuner: error: argument") and flags[0] in err[0], err
+
+
+# --------------------------------------------------------------------------- the design span of Q
+
+#: the leave-one-bag-out fold that went wrong with Q searched over the whole box (seeds 21, 22, GNSS noise
+#: 2x the default R): Q/R tuned on the six other scenarios, held out on stiffness-drop
+SPAN_SOURCES = ("sine", "step20-ccw", "step30-cw", "surface-change", "multisine", "wet-saturating")
+SPAN_SEEDS = (21, 22)
+
+
+def _noisier_drive(scenario: str, seed: int):  # noqa: ANN202
+    from helpers import simulate_epochs
+
+    from transplanter_ident.bags.reader import Truth
+    from transplanter_ident.sim.scenarios import build_config
+    from transplanter_ident.sim.simulator import SensorNoise
+
+    base = SensorNoise()
+    noise = replace(base, velocity=2.0 * base.velocity, heading=2.0 * base.heading)
+    result, epochs = simulate_epochs(replace(build_config(scenario, seed=seed), noise=noise))
+    nan = np.full_like(result.gnss_time, np.nan)
+    return epochs, Truth(result.gnss_time, result.truth_cf, result.truth_cr, nan, nan, nan)
+
+
+@pytest.mark.parametrize("seed", SPAN_SEEDS)
+def test_q_tuned_on_other_drives_within_its_span_keeps_a_held_out_change_drive_as_accurate(seed: int) -> None:
+    """Issue #13: Q/R tuned on the other scenarios (model misfit included) do not cost the held-out drive accuracy.
+
+    Searched over the whole box, the NLL on drives the linear model does not fit buys heading
+    and yaw-rate process noise far above the design (measured q_psi 1e-5 vs 1e-8), and the held-out
+    stiffness-drop drive ended 11 and 1.7 points further off than with the defaults (seeds 21, 22).
+    Within the default span (1 decade): at most 0.4 points (Cf and Cr); asserted: <= 1 point.
+    """
+    from transplanter_ident.tuning.multi import final_errors
+    from transplanter_ident.tuning.problem import noise_to_vector
+    from transplanter_ident.tuning.tune import tune_problem
+
+    config = EstimatorParams().config
+    sources = [_noisier_drive(name, seed)[0] for name in SPAN_SOURCES]
+    held_out, truth = _noisier_drive("stiffness-drop", seed)
+    excess, q_psi = {}, {}
+    for span in (1.0, math.inf):
+        problem = MultiBagProblem.from_epochs(config, sources, "nll", q_span=span)
+        tuned = tune_problem(problem, seed=7).tuned_config
+        q_psi[span] = noise_to_vector(tuned.noise, ("q_psi",))[0] - noise_to_vector(config.noise, ("q_psi",))[0]
+        (cf_default, cf_tuned), (cr_default, cr_tuned) = final_errors([config, tuned], held_out, truth)
+        excess[span] = max(abs(cf_tuned) - abs(cf_default), abs(cr_tuned) - abs(cr_default))
+    assert excess[1.0] <= 0.01, excess
+    assert q_psi[1.0] <= 1.0 + 1e-9
+    # the same check fails over the whole box: q_psi rises >= 2 decades and the held-out drive loses > 1 point
+    assert q_psi[math.inf] >= 2.0 and excess[math.inf] > 0.01, (q_psi, excess)

@@ -17,9 +17,11 @@ from transplanter_ident.tuning.benchmark_functions import ackley, random_search,
 from transplanter_ident.tuning.box import Box
 from transplanter_ident.tuning.problem import (
     NAMES,
+    Q_SPAN,
     TuningProblem,
     batch_objective,
     candidate_matrices,
+    design_box,
     noise_to_vector,
     search_box,
     search_config,
@@ -282,6 +284,41 @@ def test_split_q_searches_the_physical_noises_by_default(measurement: str) -> No
     box = search_box(options, searched_names(options))
     assert np.all(noise_to_vector(NoiseParams(), box.names) >= box.low)
     assert np.all(noise_to_vector(NoiseParams(), box.names) <= box.high)
+
+
+@pytest.mark.parametrize("tune_stiffness_noise", [False, True])
+def test_process_noise_is_searched_within_q_span_of_the_start(tune_stiffness_noise: bool) -> None:
+    """Q within Q_SPAN decades of the configured value (inside the bounds), R over its bounds; inf: the whole box."""
+    config = EstimatorConfig(noise=NoiseParams(process_noise=(1e-4, 3e-8, 1.5e-5, 1.5e-5), heading_process_noise=0.0))
+    names = searched_names(config.options, tune_stiffness_noise)
+    full, box = search_box(config.options, names), design_box(config, names)
+    start = full.clip(noise_to_vector(config.noise, names))
+    assert Q_SPAN == 1.0 and box.names == names
+    for i, name in enumerate(names):
+        if name.startswith("r_"):
+            assert (box.lower[i], box.upper[i]) == (full.lower[i], full.upper[i]), name
+        else:
+            assert box.lower[i] == max(full.lower[i], start[i] - 1.0), name
+            assert box.upper[i] == min(full.upper[i], start[i] + 1.0), name
+    q_r, q_psi = names.index("q_r"), names.index("q_psi")
+    assert (box.lower[q_r], box.upper[q_r]) == (-8.0, pytest.approx(math.log10(3e-7)))  # near the lower bound
+    assert (box.lower[q_psi], box.upper[q_psi]) == (-12.0, -11.0)  # zero: the span starts at the lower bound
+    assert design_box(config, names, math.inf) == full
+    assert design_box(config, names, 0.25).upper[0] == pytest.approx(-3.75)
+    for bad in (0.0, -1.0, math.nan):
+        with pytest.raises(ValueError, match="q_span"):
+            design_box(config, names, bad)
+
+
+def test_problem_box_and_start_follow_q_span(sine_epochs) -> None:  # noqa: ANN001
+    config = EstimatorConfig()
+    narrow = TuningProblem.from_epochs(config, sine_epochs, "nll")
+    wide = TuningProblem.from_epochs(config, sine_epochs, "nll", q_span=math.inf)
+    assert narrow.box == design_box(config, narrow.names) and wide.box == search_box(config.options, wide.names)
+    np.testing.assert_array_equal(narrow.start, wide.start)
+    assert np.all(narrow.start >= narrow.box.low) and np.all(narrow.start <= narrow.box.high)
+    with pytest.raises(ValueError, match="q_span"):
+        TuningProblem.from_epochs(config, sine_epochs, "nll", q_span=0.0)
 
 
 def test_split_q_keeps_the_stiffness_and_offset_noise_as_configured(sine_epochs) -> None:  # noqa: ANN001

@@ -3,7 +3,7 @@
 ``tuner BAG [BAG ...] -o OUT.yaml [--params-file P.yaml ...] [--algorithm ipso|pso|cmaes]
 [--objective mae|nll] [--particles N] [--iterations N] [--seed N] [--report DIR] [--jobs N]
 [--dask ADDRESS] [--epoch-cache DIR | --no-epoch-cache] [--estimate-delay] [--tune-stiffness-noise]
-[--no-leave-one-out] [--debug]``
+[--q-span DECADES] [--no-leave-one-out] [--debug]``
 
 1. reads each bag's epochs with the layered parameters, decoding a bag only if the epoch
    cache (:mod:`transplanter_ident.bags.cache`) does not hold it yet; with ``--estimate-delay``,
@@ -11,7 +11,8 @@
    the starting Q/R (:mod:`transplanter_ident.cli.delay_search`), then uses the epochs at that delay;
 2. searches the log10 diagonal of Q and R (eq. 22, :mod:`tuning`): the physical noises (vy, r,
    psi process noise and R; the stiffness and offset random walks and the change mechanism keep
-   their designed values unless ``--tune-stiffness-noise``) with IPSO (eqs. 17-20),
+   their designed values unless ``--tune-stiffness-noise``; each process noise within
+   ``--q-span`` decades of its configured value) with IPSO (eqs. 17-20),
    standard PSO (eqs. 15-16) or CMA-ES, minimising eq. (21) (``mae``) or the innovation NLL
    (``nll``), averaged over the bags with their epoch counts as weights; the starting Q/R is
    one of the initial candidates; one progress line per iteration. The candidates run on
@@ -62,7 +63,7 @@ from transplanter_ident.tuning.parallel import (
     warm_kernels,
     warm_worker,
 )
-from transplanter_ident.tuning.problem import OBJECTIVES
+from transplanter_ident.tuning.problem import OBJECTIVES, Q_SPAN
 from transplanter_ident.tuning.pso import IterationRecord
 from transplanter_ident.tuning.tune import (
     ALGORITHMS,
@@ -105,6 +106,17 @@ _count = _int_at_least(1)
 _seed = _int_at_least(0)
 
 
+def _span(text: str) -> float:
+    """An argparse type: decades, a positive number or inf."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not value > 0.0:
+        raise argparse.ArgumentTypeError(f"must be a positive number of decades or inf, got {text!r}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Command line pinned in DESIGN.md section 3."""
     parser = _Parser(prog="tuner", description="Tune the EKF's Q and R on recorded bags (IPSO, PSO or CMA-ES); "
@@ -141,6 +153,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="also tune the stiffness random walk (q_Cf, q_Cr of ekf.process_noise); by default "
                              "only the physical noises (vy, r, psi and R) are tuned and the stiffness and offset "
                              "random walks and the change mechanism keep their designed values")
+    parser.add_argument("--q-span", metavar="DECADES", type=_span, default=Q_SPAN,
+                        help=f"search each process noise within this many decades of its configured value "
+                             f"(default {Q_SPAN:g}; inf: the whole box). Wider lets drives the linear model does "
+                             f"not fit buy motion noise that starves the stiffness (README)")
     parser.add_argument("--no-leave-one-out", action="store_true",
                         help="with several bags, skip the leave-one-bag-out check (2 tuning runs per bag)")
     parser.add_argument("--debug", action="store_true", help="print tracebacks on errors")
@@ -270,7 +286,8 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
     epochs = [item.epochs for item in decoded]
     truths = [item.truth for item in decoded]
     config = params.config
-    problem = MultiBagProblem.from_epochs(config, epochs, args.objective, remote, args.tune_stiffness_noise)
+    problem = MultiBagProblem.from_epochs(config, epochs, args.objective, remote, args.tune_stiffness_noise,
+                                          args.q_span)
     where = f"Dask cluster {args.dask}" if args.dask else f"{local.slots} job{'s' if local.slots > 1 else ''}"
     source = args.bags[0] if len(args.bags) == 1 else f"{len(args.bags)} bags"
     print(f"tuner: {sum(map(len, epochs))} epochs from {source}; {args.algorithm} on {args.objective}, "

@@ -25,7 +25,7 @@ from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.evaluation.metrics import Table2Row, format_table2, table2_row
 from transplanter_ident.tuning.box import Box
 from transplanter_ident.tuning.cmaes import CmaesSettings, minimize_cmaes
-from transplanter_ident.tuning.problem import TuningProblem
+from transplanter_ident.tuning.problem import Q_SPAN, TuningProblem
 from transplanter_ident.tuning.pso import (
     BatchObjective,
     IterationRecord,
@@ -52,6 +52,10 @@ class Problem(Protocol):
     @property
     def box(self) -> Box:
         """The search box."""
+
+    @property
+    def q_span(self) -> float:
+        """Decades either side of the configured Q searched."""
 
     @property
     def start(self) -> np.ndarray:
@@ -127,15 +131,16 @@ class Comparison:
 
 def tune(config: EstimatorConfig, epochs: EpochArrays, *, algorithm: str = "ipso", objective: str = "nll",
          particles: int = 20, iterations: int = 40, seed: int | None = None,
-         max_evaluations: int | None = None, tune_stiffness_noise: bool = False,
+         max_evaluations: int | None = None, tune_stiffness_noise: bool = False, q_span: float = Q_SPAN,
          on_iteration: Callable[[IterationRecord], None] | None = None) -> TuningOutcome:
     """Search Q/R on ``epochs``; ``config``'s own Q/R (clipped to the box) is one of the initial particles.
 
     So the result is never worse than the starting Q/R when that lies inside the search box.
     ``seed`` None draws one (recorded in the outcome, so the run can be repeated). The physical
-    noises are searched, and the stiffness random walks too with ``tune_stiffness_noise``.
+    noises are searched, and the stiffness random walks too with ``tune_stiffness_noise``; each
+    process noise within ``q_span`` decades of the configured value.
     """
-    problem = TuningProblem.from_epochs(config, epochs, objective, tune_stiffness_noise)
+    problem = TuningProblem.from_epochs(config, epochs, objective, tune_stiffness_noise, q_span)
     return tune_problem(problem, algorithm=algorithm, particles=particles, iterations=iterations, seed=seed,
                         max_evaluations=max_evaluations, on_iteration=on_iteration)
 
@@ -191,12 +196,15 @@ def tuned_parameters(config: EstimatorConfig) -> dict[str, Any]:
 
 
 def _kept_line(outcome: TuningOutcome) -> list[str]:
-    """The header line on the stiffness random walk, when it was kept at its designed value (split Q)."""
+    """The header lines on the span searched and on the stiffness random walk kept at its designed value (split Q)."""
+    span = outcome.problem.q_span
+    lines = [f"Q searched within {span:g} decades of the start (tuner --q-span)" if math.isfinite(span)
+             else "Q searched over the whole box (tuner --q-span inf)"]
     if "q_cf" in outcome.problem.names:
-        return []
+        return lines
     q = outcome.problem.config.noise.process_noise
-    return [f"kept by design (not tuned): q_cf={q[2]:.3g}, q_cr={q[3]:.3g} (stiffness random walk), the offset Q "
-            "and the change mechanism; tuner --tune-stiffness-noise searches q_cf, q_cr too"]
+    return [*lines, f"kept by design (not tuned): q_cf={q[2]:.3g}, q_cr={q[3]:.3g} (stiffness random walk), the "
+            "offset Q and the change mechanism; tuner --tune-stiffness-noise searches q_cf, q_cr too"]
 
 
 def header_comment(outcome: TuningOutcome, bag: str | Sequence[str], epochs: int | Sequence[int]) -> str:
