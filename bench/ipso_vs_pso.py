@@ -20,6 +20,7 @@ Run: ``python bench/ipso_vs_pso.py [--seeds N] [--no-tuning]``.
 from __future__ import annotations
 
 import argparse
+import math
 import statistics
 import sys
 import tempfile
@@ -57,7 +58,7 @@ def problems(with_tuning: bool) -> list[tuple[str, Callable[[np.ndarray], np.nda
         params = EstimatorParams()
         bag = ensure_bag("step20-ccw", ROOT / "bags", Path(tempfile.gettempdir()) / "transplanter_ident_bench")
         epochs, _ = load_bag(str(bag), params)
-        problem = TuningProblem.from_epochs(params.config, epochs, "mae")
+        problem = TuningProblem.from_epochs(params.config, epochs, "mae", q_span=math.inf)  # the whole box
         rows.append(("step20-ccw tuning (mae, eq. 21)", problem, problem.box))
     return rows
 

@@ -21,10 +21,10 @@ simulator's noise), but it is nearly flat in Q where the linear model holds and 
 does not: on a step steer that saturates the tire, motion noise 100x the design absorbs the
 model's error (NLL -0.27 per epoch, against -0.01 on the sine drive). Pooled over bags, those
 drives set Q, and the stiffness then learns from a model told to trust itself less: in the
-leave-one-bag-out check (seed 11, GNSS noise 2x) a held-out stiffness-drop drive ended +12 % (design Q: -1.6 %) with q_psi
-tuned 1000x the design. The span keeps the design's balance between the model and the stiffness;
-``q_span`` inf searches the whole box. Every entry not searched keeps the configured value
-(:func:`candidate_matrices`). Candidates run
+leave-one-bag-out check (seed 11, GNSS noise 2x) a held-out stiffness-drop drive ended +12 %
+(design Q: -1.6 %) with q_psi tuned 1000x the design. The span keeps the design's balance
+between the model and the stiffness; ``q_span`` inf searches the whole box. Every entry not
+searched keeps the configured value (:func:`candidate_matrices`). Candidates run
 without ``ekf.noise_adaptation`` (:func:`search_arrays`): the search measures R itself, and a filter
 that raised a too-small R to what its innovations show would make every R below the truth score alike.
 
