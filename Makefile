@@ -2,6 +2,8 @@
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
+# test files run on this many worker processes (pytest-xdist): the cores, at most 4
+TEST_JOBS ?= $(shell $(PYTHON) -c 'import os; print(max(1, min(4, len(os.sched_getaffinity(0)))))' 2>/dev/null || echo 1)
 
 # DDS stays on loopback for everything started from here (DESIGN.md section 4).
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
@@ -36,7 +38,7 @@ $(VENV)/.warm: $(VENV)/.stamp $(PACKAGE_SOURCES)
 
 test: venv
 	$(BIN)/ruff check transplanter_ident test
-	@$(BIN)/python -m pytest -q test; rc=$$?; \
+	@$(BIN)/python -m pytest -q -n $(TEST_JOBS) --dist loadfile test; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "error: pytest collected no tests (exit code 5); treating that as a failure" >&2; exit 1; fi; \
 	exit $$rc
 
