@@ -15,7 +15,14 @@ import pytest
 
 import transplanter_ident.cli.tuner as tuner
 from transplanter_ident.config.params_file import EstimatorParams, read_params_file
-from transplanter_ident.tuning.multi import HoldOut, LeaveOneOut, MultiBagProblem, fold_seed
+from transplanter_ident.tuning.multi import (
+    HoldOut,
+    LeaveOneOut,
+    MultiBagProblem,
+    final_errors,
+    fold_seed,
+    leave_one_out,
+)
 from transplanter_ident.tuning.parallel import ProcessBackend, SerialBackend, plan_chunks
 from transplanter_ident.tuning.problem import TuningProblem
 
@@ -205,6 +212,29 @@ def test_fold_seeds_differ_and_repeat() -> None:
 
 
 # --------------------------------------------------------------------------- the command
+
+
+def test_leave_one_out_scores_every_single_bag_q_r_on_the_other_bags(sim_bags) -> None:  # noqa: ANN001
+    """The 'one other' column is the median |final error| of the other bags' single-bag Q/R (checked by hand)."""
+    params = EstimatorParams()
+    loaded = [tuner.load_bag(str(bag), params, truth=True) for bag in sim_bags]
+    epochs, truths = [e for e, _ in loaded], [t for _, t in loaded]
+    problem = MultiBagProblem.from_epochs(params.config, epochs, "nll")
+
+    def fake_tune(fold: MultiBagProblem, seed: int):  # noqa: ANN202 - a distinct R per fold, no search
+        index = [[q is p for q in problem.problems].index(True) for p in fold.problems]
+        factor = 1.0 + sum(0.5 * 3**j for j in index)  # alone 1.5, 2.5, 5.5; in pairs 3, 6, 7
+        noise = params.config.noise
+        return replace(params.config, noise=replace(noise, measurement_noise=tuple(factor * v for v in
+                                                                                     noise.measurement_noise)))
+
+    table = leave_one_out(problem, epochs, truths, [b.name for b in sim_bags], fake_tune, seed=3)
+    singles = [fake_tune(problem.subset([j]), 0) for j in range(3)]
+    for i, row in enumerate(table.rows):
+        cf, cr = final_errors([singles[j] for j in range(3) if j != i], epochs[i], truths[i])
+        assert row.elsewhere == pytest.approx((np.median(np.abs(cf)), np.median(np.abs(cr))), rel=1e-12)
+        own_cf, own_cr = final_errors([singles[i]], epochs[i], truths[i])
+        assert (row.final_cf[1], row.final_cr[1]) == pytest.approx((own_cf[0], own_cr[0]), rel=1e-12)
 
 
 def _tuner(*args: object) -> int:
