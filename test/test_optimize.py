@@ -26,10 +26,12 @@ from transplanter_ident.tuning.problem import (
     search_box,
     search_config,
     searched_names,
+    span_edges,
     vector_to_noise,
 )
 from transplanter_ident.tuning.pso import (
     IpsoSettings,
+    OptimizeResult,
     PsoSettings,
     detection_radius,
     inertia,
@@ -38,6 +40,7 @@ from transplanter_ident.tuning.pso import (
     pso_for_budget,
     settings_for,
 )
+from transplanter_ident.tuning.tune import TuningOutcome, edge_note, header_comment
 
 RASTRIGIN_BOX = Box.cube(6, -5.12, 5.12)
 ACKLEY_BOX = Box.cube(6, -32.768, 32.768)
@@ -319,6 +322,28 @@ def test_problem_box_and_start_follow_q_span(sine_epochs) -> None:  # noqa: ANN0
     assert np.all(narrow.start >= narrow.box.low) and np.all(narrow.start <= narrow.box.high)
     with pytest.raises(ValueError, match="q_span"):
         TuningProblem.from_epochs(config, sine_epochs, "nll", q_span=0.0)
+
+
+def test_tuned_q_at_an_edge_of_its_span_is_named(sine_epochs) -> None:  # noqa: ANN001
+    """Edges the span set are named (in the YAML header too); physical bounds and R are not."""
+    config = EstimatorConfig(noise=NoiseParams(heading_process_noise=0.0))  # q_psi's span starts at its bound
+    problem = TuningProblem.from_epochs(config, sine_epochs, "nll")
+    start, box = problem.start, problem.box
+    assert problem.names == ("q_vy", "q_r", "q_psi", "r_vy", "r_2")
+    assert span_edges(config, problem.names, 1.0, start) == ()  # the start is the span's centre (q_psi: its bound)
+    inside = start.copy()
+    inside[2] = box.lower[2]  # on the physical lower bound: not a span edge
+    inside[3], inside[4] = box.upper[3], box.lower[4]  # R on its bounds: not a span edge
+    assert span_edges(config, problem.names, 1.0, inside) == ()
+    edged = inside.copy()
+    edged[0], edged[1] = box.upper[0] - 0.005, box.lower[1] + 0.005  # within 1 % of the 2-decade span
+    assert span_edges(config, problem.names, 1.0, edged) == (("q_vy", "upper"), ("q_r", "lower"))
+    assert span_edges(config, problem.names, math.inf, edged) == ()
+    outcome = TuningOutcome(problem, OptimizeResult("ipso", edged, -5.0, 10), -4.0, 1, 0.1)
+    note = edge_note(outcome)
+    assert note.startswith("q_vy at its upper edge, q_r at its lower edge (1 decades from the start)")
+    assert f"# {note}" in "# " + header_comment(outcome, "bag", 10).replace("\n", "\n# ")
+    assert edge_note(TuningOutcome(problem, OptimizeResult("ipso", inside, -5.0, 10), -4.0, 1, 0.1)) == ""
 
 
 def test_split_q_keeps_the_stiffness_and_offset_noise_as_configured(sine_epochs) -> None:  # noqa: ANN001

@@ -69,6 +69,7 @@ from transplanter_ident.tuning.tune import (
     ALGORITHMS,
     Comparison,
     compare_configs,
+    edge_note,
     header_comment,
     tune_problem,
     tuned_parameters,
@@ -296,6 +297,8 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
     outcome = tune_problem(problem, algorithm=args.algorithm, particles=args.particles, iterations=args.iterations,
                            seed=args.seed, on_iteration=progress_printer(args.iterations))
     check_finite(outcome.result.fitness, outcome.result.evaluations, ", ".join(args.bags))
+    if edge_note(outcome):
+        print(f"tuner: note: {edge_note(outcome)}", file=sys.stderr)
     result = outcome.result
     label = f"{outcome.result.algorithm.upper()}-EKF (tuned)"
     summaries = local.map(summarize_bag, [(outcome.start_config, outcome.tuned_config, bag_epochs, label)

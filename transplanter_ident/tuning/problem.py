@@ -143,6 +143,27 @@ def design_box(config: EstimatorConfig, names: tuple[str, ...], q_span: float = 
     return Box(tuple(low), tuple(high), tuple(names))
 
 
+#: a position this share of its span's width from a narrowed edge counts as at that edge
+EDGE_SHARE = 0.01
+
+
+def span_edges(config: EstimatorConfig, names: tuple[str, ...], q_span: float,
+               position: np.ndarray) -> tuple[tuple[str, str], ...]:
+    """(name, "lower" | "upper") of each entry of ``position`` at an edge the span set (not a physical bound).
+
+    A tuned Q there is where the data wanted more (or less) than the span allows.
+    """
+    full, box = search_box(config.options, names), design_box(config, names, q_span)
+    margin = EDGE_SHARE * box.width
+    edges = []
+    for i, name in enumerate(names):
+        if box.lower[i] > full.lower[i] and position[i] <= box.lower[i] + margin[i]:
+            edges.append((name, "lower"))
+        elif box.upper[i] < full.upper[i] and position[i] >= box.upper[i] - margin[i]:
+            edges.append((name, "upper"))
+    return tuple(edges)
+
+
 def _noise_value(noise: NoiseParams, name: str) -> float:
     values = {"q_vy": noise.process_noise[0], "q_r": noise.process_noise[1], "q_psi": noise.heading_process_noise,
               "q_cf": noise.process_noise[2], "q_cr": noise.process_noise[3], "r_vy": noise.measurement_noise[0],
