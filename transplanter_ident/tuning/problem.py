@@ -16,8 +16,8 @@ units of the filter state) after the process noises, as the tuner did before the
 
 The process noises are searched within ``q_span`` decades (default :data:`Q_SPAN`, 1) either side
 of the configured value, inside the bounds below; R within the bounds alone. The NLL identifies R
-well (tuned on each of the project's scenarios alone, r_vy and r_2 land within ~0.1 decade of the
-simulator's noise), but it is nearly flat in Q where the linear model holds and steep where it
+well (tuned on each of the project's scenarios alone, r_vy and r_2 land within 0.25 decade of
+the simulator's noise, most within 0.1), but it is nearly flat in Q where the linear model holds and steep where it
 does not: on a step steer that saturates the tire, motion noise 100x the design absorbs the
 model's error (NLL -0.27 per epoch, against -0.01 on the sine drive). Pooled over bags, those
 drives set Q, and the stiffness then learns from a model told to trust itself less: in the
