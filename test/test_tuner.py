@@ -91,7 +91,7 @@ def test_cli_writes_a_layerable_yaml_with_header(tuned_run) -> None:  # noqa: AN
     text = yaml_path.read_text()
     header = [line for line in text.splitlines() if line.startswith("#")]
     for word in ("bag:", "objective: mae", "fitness:", "seed: 3", "algorithm: ipso", "evaluations:",
-                 "Q searched within 1 decades of the start (tuner --q-span)"):
+                 "Q searched within 1 decade of the start (tuner --q-span)"):
         assert any(word in line for line in header), word
     flat = read_params_file(yaml_path)
     assert set(flat) == {"ekf.discretization", "ekf.stiffness_state", "ekf.measurement", "ekf.process_noise",

@@ -63,7 +63,7 @@ from transplanter_ident.tuning.parallel import (
     warm_kernels,
     warm_worker,
 )
-from transplanter_ident.tuning.problem import OBJECTIVES, Q_SPAN
+from transplanter_ident.tuning.problem import OBJECTIVES, Q_SPAN, check_q_span
 from transplanter_ident.tuning.pso import IterationRecord
 from transplanter_ident.tuning.tune import (
     ALGORITHMS,
@@ -108,14 +108,11 @@ _seed = _int_at_least(0)
 
 
 def _span(text: str) -> float:
-    """An argparse type: decades, a positive number or inf."""
+    """An argparse type: decades, a positive number or inf (``tuning.problem.check_q_span``)."""
     try:
-        value = float(text)
+        return check_q_span(float(text))
     except ValueError:
-        value = math.nan
-    if not value > 0.0:
-        raise argparse.ArgumentTypeError(f"must be a positive number of decades or inf, got {text!r}")
-    return value
+        raise argparse.ArgumentTypeError(f"must be a positive number of decades or inf, got {text!r}") from None
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -297,8 +294,9 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
     outcome = tune_problem(problem, algorithm=args.algorithm, particles=args.particles, iterations=args.iterations,
                            seed=args.seed, on_iteration=progress_printer(args.iterations))
     check_finite(outcome.result.fitness, outcome.result.evaluations, ", ".join(args.bags))
-    if edge_note(outcome):
-        print(f"tuner: note: {edge_note(outcome)}", file=sys.stderr)
+    note = edge_note(outcome)
+    if note:
+        print(f"tuner: note: {note}", file=sys.stderr)
     result = outcome.result
     label = f"{outcome.result.algorithm.upper()}-EKF (tuned)"
     summaries = local.map(summarize_bag, [(outcome.start_config, outcome.tuned_config, bag_epochs, label)

@@ -17,8 +17,8 @@ units of the filter state) after the process noises, as the tuner did before the
 The process noises are searched within ``q_span`` decades (default :data:`Q_SPAN`, 1) either side
 of the configured value, inside the bounds below; R within the bounds alone. The NLL identifies R
 well (tuned on each of the project's scenarios alone, r_vy and r_2 land within 0.25 decade of
-the simulator's noise, most within 0.1), but it is nearly flat in Q where the linear model holds and steep where it
-does not: on a step steer that saturates the tire, motion noise 100x the design absorbs the
+the simulator's noise, most within 0.1), but it is nearly flat in Q where the linear model holds
+and steep where it does not: on a step steer that saturates the tire, motion noise 100x the design absorbs the
 model's error (NLL -0.27 per epoch, against -0.01 on the sine drive). Pooled over bags, those
 drives set Q, and the stiffness then learns from a model told to trust itself less: in the
 leave-one-bag-out check (seed 11, GNSS noise 2x) a held-out stiffness-drop drive ended +12 %
@@ -127,13 +127,26 @@ def search_box(options: FilterOptions, names: tuple[str, ...] = NAMES) -> Box:
     return Box(tuple(r[0] for r in rows), tuple(r[1] for r in rows), tuple(names))
 
 
+def check_q_span(q_span: float) -> float:
+    """``q_span`` if it is a positive number of decades (inf included), else ValueError."""
+    if not q_span > 0.0:
+        raise ValueError(f"q_span must be a positive number of decades or inf, got {q_span!r}")
+    return q_span
+
+
+def span_words(q_span: float) -> str:
+    """How far from the start Q was searched, in words."""
+    if not math.isfinite(q_span):
+        return "over the whole box"
+    return f"within {q_span:g} decade{'' if q_span == 1.0 else 's'} of the start"
+
+
 def design_box(config: EstimatorConfig, names: tuple[str, ...], q_span: float = Q_SPAN) -> Box:
     """:func:`search_box` with each process noise narrowed to ``q_span`` decades around the configured value.
 
     A configured value outside the bounds (or zero) centres its span on the nearest bound.
     """
-    if not q_span > 0.0:
-        raise ValueError(f"q_span must be positive (decades; inf: the whole box), got {q_span!r}")
+    check_q_span(q_span)
     box = search_box(config.options, names)
     centre = box.clip(noise_to_vector(config.noise, names))
     low, high = list(box.lower), list(box.upper)
@@ -280,8 +293,7 @@ class TuningProblem:
     def __post_init__(self) -> None:
         if self.objective not in OBJECTIVES:
             raise ValueError(f"objective must be one of {', '.join(OBJECTIVES)}, got {self.objective!r}")
-        if not self.q_span > 0.0:
-            raise ValueError(f"q_span must be positive (decades; inf: the whole box), got {self.q_span!r}")
+        check_q_span(self.q_span)
 
     @classmethod
     def from_epochs(cls, config: EstimatorConfig, epochs: EpochArrays, objective: str = "mae",

@@ -25,7 +25,7 @@ from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.evaluation.metrics import Table2Row, format_table2, table2_row
 from transplanter_ident.tuning.box import Box
 from transplanter_ident.tuning.cmaes import CmaesSettings, minimize_cmaes
-from transplanter_ident.tuning.problem import Q_SPAN, TuningProblem, span_edges
+from transplanter_ident.tuning.problem import Q_SPAN, TuningProblem, span_edges, span_words
 from transplanter_ident.tuning.pso import (
     BatchObjective,
     IterationRecord,
@@ -202,17 +202,16 @@ def edge_note(outcome: TuningOutcome) -> str:
     if not edges:
         return ""
     listed = ", ".join(f"{name} at its {side} edge" for name, side in edges)
-    return (f"{listed} ({problem.q_span:g} decades from the start): the bags wanted more room there; before "
+    return (f"{listed} (searched {span_words(problem.q_span)}): the bags wanted more room there; before "
             "widening --q-span, check the leave-one-bag-out table (README)")
 
 
 def _kept_line(outcome: TuningOutcome) -> list[str]:
     """The header lines on the span searched and on the stiffness random walk kept at its designed value (split Q)."""
-    span = outcome.problem.q_span
-    lines = [f"Q searched within {span:g} decades of the start (tuner --q-span)" if math.isfinite(span)
-             else "Q searched over the whole box (tuner --q-span inf)"]
-    if edge_note(outcome):
-        lines.append(edge_note(outcome))
+    lines = [f"Q searched {span_words(outcome.problem.q_span)} (tuner --q-span)"]
+    note = edge_note(outcome)
+    if note:
+        lines.append(note)
     if "q_cf" in outcome.problem.names:
         return lines
     q = outcome.problem.config.noise.process_noise
