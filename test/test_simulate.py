@@ -173,3 +173,18 @@ def test_gnss_correlation_time_flag_gives_the_simulators_correlated_errors(tmp_p
     white = simulate(config)
     np.testing.assert_allclose(wrap_angle(headings - correlated.heading), 0.0, atol=1e-9)
     assert np.max(np.abs(wrap_angle(headings - white.heading))) > 1e-4
+
+
+def test_relaxation_length_flag_gives_the_simulators_lagging_tires(tmp_path: Path) -> None:
+    """--relaxation-length 0.3: the bag's headings are those of the simulator with lagging tires."""
+    bag = tmp_path / "lagging"
+    result = run("simulate", "-o", bag, "--scenario", "sine", "--duration", "20", "--seed", "3",
+                 "--relaxation-length", "0.3")
+    assert result.returncode == 0, result.stderr
+    headings = np.array([2.0 * math.atan2(m.quaternion.z, m.quaternion.w) for m in messages(bag, "/gnss/heading")])
+    config = build_config("sine", duration=20.0, seed=3)
+    lagging = simulate(replace(config, relaxation_length=0.3))
+    np.testing.assert_allclose(wrap_angle(headings - lagging.heading), 0.0, atol=1e-9)
+    assert np.max(np.abs(wrap_angle(headings - simulate(config).heading))) > 1e-3
+    refused = run("simulate", "-o", tmp_path / "bad", "--relaxation-length", "-1")
+    assert refused.returncode != 0 and "relaxation_length" in refused.stderr

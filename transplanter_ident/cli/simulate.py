@@ -71,6 +71,10 @@ def build_parser() -> argparse.ArgumentParser:
     imperfect.add_argument("--side-slope", metavar="RAD", type=float,
                            help="a cross slope along the path: gravity adds g sin(slope) to the lateral "
                                 "acceleration (+: to the left; default 0)")
+    imperfect.add_argument("--relaxation-length", metavar="M", type=float,
+                           help="the tires build their force over M of travel, lagging the slip by about M / vx "
+                                "(a real tire's is of the order of its radius; the filter's model has no lag; "
+                                "default 0)")
     imperfect.add_argument("--gnss-first", action="store_true",
                            help="log each GNSS message before the steering sample of the same instant")
     enc = parser.add_argument_group("message types, frames, topics and drivers (issue #12)")
@@ -154,6 +158,8 @@ def _run(args: argparse.Namespace) -> int:
             config = replace(config, gnss_degraded=tuple(args.gnss_degraded))
         if args.side_slope is not None:
             config = replace(config, bank_angle=args.side_slope)
+        if args.relaxation_length is not None:
+            config = replace(config, relaxation_length=args.relaxation_length)
         if args.gnss_correlation_time is not None:
             config = replace(config, noise=replace(config.noise, correlation_time=args.gnss_correlation_time))
         options = SimBagOptions(start_time=args.start_time, truth=not args.no_truth, compress=args.compress,

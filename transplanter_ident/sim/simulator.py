@@ -9,7 +9,10 @@ frame at the CG:
   (same small-slip slope C, ``Fmax = friction * Fz`` from the static axle load per tire);
 - eq. (3), slip angles: ``alpha_f = delta - (vy + lf r) / vx``, ``alpha_r = (lr r - vy) / vx``;
 - eq. (4): with linear tires and ``small_angle`` the truth equals the state-space model exactly;
-- eq. (5): ``Iz = m lf lr`` unless the vehicle gives Iz (``VehicleParams.yaw_inertia``).
+- eq. (5): ``Iz = m lf lr`` unless the vehicle gives Iz (``VehicleParams.yaw_inertia``);
+- beyond the paper, ``relaxation_length`` sigma > 0: each tire builds its force over sigma of travel,
+  dF/dt = (vx / sigma) (F(alpha) - F), so the forces lag the slip by about sigma / vx (a real tire's
+  relaxation length is of the order of its radius). The filter's model has no such lag.
 
 ``[vy, r, psi]`` (``psi' = r``) is integrated with classical RK4 on a fixed fine grid; the
 steering angle, vx and the stiffness are evaluated at the RK4 stage times. The grid step
@@ -96,6 +99,8 @@ class SimConfig:
     #: (start s, end s, factor): the GNSS velocity and heading noise is this many times larger in the window
     #: (an RTK fix lost to float); the result's velocity_std/heading_std say what was applied
     gnss_degraded: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    #: m: the tires' relaxation length (0: the force follows the slip at once, as in the paper's model)
+    relaxation_length: float = 0.0
 
     def __post_init__(self) -> None:
         if self.tire not in TIRE_MODELS:
@@ -107,6 +112,9 @@ class SimConfig:
         require_finite("steering_offset", self.steering_offset)
         require_finite("gnss_delay", self.gnss_delay)
         require_finite("bank_angle", self.bank_angle)
+        require_finite("relaxation_length", self.relaxation_length)
+        if self.relaxation_length < 0.0:
+            raise ValueError(f"relaxation_length must be >= 0, got {self.relaxation_length!r}")
         if not (len(self.gnss_degraded) == 3 and all(math.isfinite(v) for v in self.gnss_degraded)
                 and self.gnss_degraded[2] > 0.0):
             raise ValueError(f"gnss_degraded must be (start, end, factor > 0), got {self.gnss_degraded!r}")
@@ -239,7 +247,10 @@ def _build_inputs(config: SimConfig, n_periods: int) -> tuple[_Inputs, int]:
     stride = max(1, math.ceil(period / config.integration_step - 1e-9))
     while True:
         inputs = _evaluate_inputs(config, period / stride, n_periods * stride)
-        refine = math.ceil(inputs.step * _max_system_norm(inputs, config.vehicle) / _MAX_STEP_STIFFNESS)
+        fastest = _max_system_norm(inputs, config.vehicle)
+        if config.relaxation_length > 0.0:
+            fastest = max(fastest, float(np.max(inputs.vx)) / config.relaxation_length)
+        refine = math.ceil(inputs.step * fastest / _MAX_STEP_STIFFNESS)
         if refine <= 1:
             return inputs, stride
         stride *= refine
@@ -270,6 +281,8 @@ def _max_system_norm(inputs: _Inputs, vehicle: VehicleParams) -> float:
 
 def _integrate(config: SimConfig, inputs: _Inputs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """RK4 over the grid; returns vy, r, psi at every grid point (n_steps + 1 values each)."""
+    if config.relaxation_length > 0.0:
+        return _integrate_lagged(config, inputs)
     h = inputs.step
     n_steps = (len(inputs.vx) - 1) // 2
     deriv = _derivative(config, inputs)
@@ -294,44 +307,77 @@ def _integrate(config: SimConfig, inputs: _Inputs) -> tuple[np.ndarray, np.ndarr
     return vy_out, r_out, psi_out
 
 
-def _derivative(config: SimConfig, inputs: _Inputs) -> Callable[[float, float, int], tuple[float, float]]:
-    """(dvy/dt, dr/dt) of eq. (1) at half-grid index i, with the tire model of the config.
+def _integrate_lagged(config: SimConfig, inputs: _Inputs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """RK4 of [vy, r, psi, Ff, Fr] with tire forces lagging their slip over ``relaxation_length``."""
+    h = inputs.step
+    n_steps = (len(inputs.vx) - 1) // 2
+    steady = _tire_forces(config, inputs)
+    motion = _motion(config, inputs)
+    rate = (inputs.vx / config.relaxation_length).tolist()
 
-    The RK4 loop is scalar, so the per-stage constants are Python floats, not numpy scalars.
-    """
+    def deriv(s: np.ndarray, i: int) -> np.ndarray:
+        target_f, target_r = steady(s[0], s[1], i)
+        dvy, dr = motion(s[3], s[4], s[1], i)
+        return np.array([dvy, dr, s[1], rate[i] * (target_f - s[3]), rate[i] * (target_r - s[4])])
+
+    state = np.array([0.0, 0.0, config.initial_heading, *steady(0.0, 0.0, 0)])
+    out = np.empty((n_steps + 1, 3))
+    out[0] = state[:3]
+    for k in range(n_steps):
+        k1 = deriv(state, 2 * k)
+        k2 = deriv(state + 0.5 * h * k1, 2 * k + 1)
+        k3 = deriv(state + 0.5 * h * k2, 2 * k + 1)
+        k4 = deriv(state + h * k3, 2 * k + 2)
+        state = state + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        out[k + 1] = state[:3]
+    return out[:, 0], out[:, 1], out[:, 2]
+
+
+def _motion(config: SimConfig, inputs: _Inputs) -> Callable[[float, float, float, int], tuple[float, float]]:
+    """(dvy/dt, dr/dt) of eq. (1) from the tire forces per tire (Ff, Fr), r and half-grid index i."""
     vehicle = config.vehicle
-    m, iz, lf, lr = vehicle.mass, vehicle.yaw_inertia, vehicle.lf, vehicle.lr
+    m, iz, lr = vehicle.mass, vehicle.yaw_inertia, vehicle.lr
     cos_delta = np.ones_like(inputs.delta) if config.small_angle else np.cos(inputs.delta)
     vx = inputs.vx.tolist()
-    inv_vx = (1.0 / inputs.vx).tolist()
-    delta = inputs.delta.tolist()
-    cf, cr = inputs.cf.tolist(), inputs.cr.tolist()
-    front = (2.0 * cos_delta / m).tolist()  # 2 cos(delta) / m
-    front_yaw = (2.0 * lf * cos_delta / iz).tolist()  # 2 lf cos(delta) / Iz
+    front = (2.0 * cos_delta / m).tolist()
+    front_yaw = (2.0 * vehicle.lf * cos_delta / iz).tolist()
     rear, rear_yaw = 2.0 / m, -2.0 * lr / iz
     slope = GRAVITY * math.sin(config.bank_angle)
 
-    if config.tire == "linear":
-
-        def linear(vy: float, r: float, i: int) -> tuple[float, float]:
-            force_f = cf[i] * (delta[i] - (vy + lf * r) * inv_vx[i])
-            force_r = cr[i] * ((lr * r - vy) * inv_vx[i])
-            return front[i] * force_f + rear * force_r - vx[i] * r + slope, front_yaw[
-                i
-            ] * force_f + rear_yaw * force_r
-
-        return linear
-
-    fmax_f, fmax_r = axle_force_limits(vehicle, config.friction)
-    tanh = math.tanh
-
-    def saturating(vy: float, r: float, i: int) -> tuple[float, float]:
-        force_f = fmax_f * tanh(cf[i] * (delta[i] - (vy + lf * r) * inv_vx[i]) / fmax_f)
-        force_r = fmax_r * tanh(cr[i] * ((lr * r - vy) * inv_vx[i]) / fmax_r)
+    def motion(force_f: float, force_r: float, r: float, i: int) -> tuple[float, float]:
         return (front[i] * force_f + rear * force_r - vx[i] * r + slope,
                 front_yaw[i] * force_f + rear_yaw * force_r)
 
-    return saturating
+    return motion
+
+
+def _tire_forces(config: SimConfig, inputs: _Inputs) -> Callable[[float, float, int], tuple[float, float]]:
+    """(Ff, Fr) per tire of eqs. (2)-(3) at (vy, r) and half-grid index i, with the tire model of the config."""
+    lf, lr = config.vehicle.lf, config.vehicle.lr
+    inv_vx = (1.0 / inputs.vx).tolist()
+    delta = inputs.delta.tolist()
+    cf, cr = inputs.cf.tolist(), inputs.cr.tolist()
+    fmax_f, fmax_r = axle_force_limits(config.vehicle, config.friction)
+
+    def linear(vy: float, r: float, i: int) -> tuple[float, float]:
+        return cf[i] * (delta[i] - (vy + lf * r) * inv_vx[i]), cr[i] * ((lr * r - vy) * inv_vx[i])
+
+    def saturating(vy: float, r: float, i: int) -> tuple[float, float]:
+        force_f, force_r = linear(vy, r, i)
+        return fmax_f * math.tanh(force_f / fmax_f), fmax_r * math.tanh(force_r / fmax_r)
+
+    return saturating if config.tire == "saturating" else linear
+
+
+def _derivative(config: SimConfig, inputs: _Inputs) -> Callable[[float, float, int], tuple[float, float]]:
+    """(dvy/dt, dr/dt) of eq. (1) at half-grid index i, with the forces following the slip at once."""
+    forces, motion = _tire_forces(config, inputs), _motion(config, inputs)
+
+    def derivative(vy: float, r: float, i: int) -> tuple[float, float]:
+        force_f, force_r = forces(vy, r, i)
+        return motion(force_f, force_r, r, i)
+
+    return derivative
 
 
 def axle_force_limits(vehicle: VehicleParams, friction: float) -> tuple[float, float]:
