@@ -60,6 +60,12 @@ ROWS: dict[str, dict[str, object]] = {
     "GNSS 10 Hz": {"gnss_rate": 10.0},
     "GNSS 2 Hz": {"gnss_rate": 2.0},
     "steering offset 2 deg": {"steering_offset": DEG(2.0)},
+    "steering gain +1 %": {"steering_scale": 1.01},
+    "steering gain -1 %": {"steering_scale": 0.99},
+    "steering gain +3 %": {"steering_scale": 1.03},
+    "configured mass +10 %": {"filter_vehicle": replace(VehicleParams(), mass=792.0)},
+    "configured yaw inertia +20 %": {"filter_vehicle": replace(VehicleParams(), iz=1.2 * VehicleParams().yaw_inertia)},
+    "configured CG 5 cm back (lf +5 cm)": {"filter_vehicle": replace(VehicleParams(), lf=0.75, lr=0.35)},
     "GNSS 10 ms late, unset": {"gnss_delay": 0.01},
     "GNSS 20 ms late, unset": {"gnss_delay": 0.02},
     "tanh tire, mu 0.5": {"tire": "saturating", "friction": 0.5},
@@ -90,10 +96,11 @@ def row_figures(overrides: dict[str, object], seeds: int, options: FilterOptions
                 settings: ValiditySettings | None = None) -> str:
     settings = settings or ValiditySettings()
     shares, finals = [], []
+    filter_vehicle = overrides.get("filter_vehicle")  # the estimator configured with other vehicle constants
     for seed in range(seeds):
-        sim = sine_drive(seed, **overrides)
+        sim = sine_drive(seed, **{k: v for k, v in overrides.items() if k != "filter_vehicle"})
         result = simulate(sim)
-        config = EstimatorConfig(vehicle=sim.vehicle, options=options)
+        config = EstimatorConfig(vehicle=filter_vehicle or sim.vehicle, options=options)
         run = run_drive(result, config)
         valid = decide_sequence(config, settings, epochs_of(result), run.outputs)
         after = run.t >= 30.0

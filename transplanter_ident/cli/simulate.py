@@ -71,6 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
     imperfect.add_argument("--side-slope", metavar="RAD", type=float,
                            help="a cross slope along the path: gravity adds g sin(slope) to the lateral "
                                 "acceleration (+: to the left; default 0)")
+    imperfect.add_argument("--steering-scale", metavar="K", type=float,
+                           help="the steering sensor reads the wheel angle x K (a calibration's gain error; default 1)")
     imperfect.add_argument("--relaxation-length", metavar="M", type=float,
                            help="the tires build their force over M of travel, lagging the slip by about M / vx "
                                 "(a real tire's is of the order of its radius; the filter's model has no lag; "
@@ -158,6 +160,8 @@ def _run(args: argparse.Namespace) -> int:
             config = replace(config, gnss_degraded=tuple(args.gnss_degraded))
         if args.side_slope is not None:
             config = replace(config, bank_angle=args.side_slope)
+        if args.steering_scale is not None:
+            config = replace(config, steering_scale=args.steering_scale)
         if args.relaxation_length is not None:
             config = replace(config, relaxation_length=args.relaxation_length)
         if args.gnss_correlation_time is not None:

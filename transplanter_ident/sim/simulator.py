@@ -93,6 +93,7 @@ class SimConfig:
     seed: int = 0
     small_angle: bool = True  # cos(delta) -> 1, so linear tires reproduce eq. (4) exactly
     steering_offset: float = 0.0  # rad: the steering sensor reads the wheel angle + this
+    steering_scale: float = 1.0  # the steering sensor reads the wheel angle x this (a calibration's gain error)
     gnss_delay: float = 0.0  # s: GNSS messages are stamped this late (the motion is at stamp - delay)
     #: rad: a cross slope along the path (a field's side slope): gravity adds g sin(bank) to dvy/dt (+: to the left)
     bank_angle: float = 0.0
@@ -105,7 +106,8 @@ class SimConfig:
     def __post_init__(self) -> None:
         if self.tire not in TIRE_MODELS:
             raise ValueError(f"tire must be one of {', '.join(TIRE_MODELS)}, got {self.tire!r}")
-        for name in ("duration", "speed", "friction", "gnss_rate", "steering_rate", "integration_step"):
+        for name in ("duration", "speed", "friction", "gnss_rate", "steering_rate", "integration_step",
+                     "steering_scale"):
             require_positive(name, getattr(self, name))
         require_finite("steering_time_offset", self.steering_time_offset)
         require_finite("initial_heading", self.initial_heading)
@@ -180,9 +182,9 @@ def simulate(config: SimConfig) -> SimResult:
     vel_meas = vel_enu + (noise.velocity * scale)[:, None] * vel_errors
     heading_errors = _correlated(rng.standard_normal(psi.shape), gnss_time, noise.correlation_time)
     heading_meas = wrap_angle(psi + noise.heading * scale * heading_errors)
-    steer_meas = _evaluate(config.steering, steering_time) + noise.steering * rng.standard_normal(
-        steering_time.shape
-    ) + config.steering_offset
+    wheel = _evaluate(config.steering, steering_time)
+    steer_meas = (config.steering_scale * wheel + noise.steering * rng.standard_normal(steering_time.shape)
+                  + config.steering_offset)
 
     return SimResult(
         gnss_time=gnss_time,
