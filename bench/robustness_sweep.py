@@ -3,7 +3,8 @@
 Not a test (the tests assert each claim on its own scenario). Each row is one condition of the
 project's simulator (test/drives.py: 2 m/s, +-15 deg sine steer of 6 s, 5 Hz GNSS, 120 s, unless the
 row changes it) over ``--seeds`` seeds, filtered with the default parameters (the vehicle's own
-parameters where the row changes the vehicle). From 30 s on it prints the share of epochs flagged
+parameters where the row changes the vehicle; a row's ``filter_vehicle`` configures the estimator with
+other constants than the simulated vehicle's). From 30 s on it prints the share of epochs flagged
 valid, the share of valid epochs whose +-2 sigma band misses the truth (Cf or Cr) or whose error
 exceeds 10 %, the share of all epochs the band misses, and the final |error| (median, worst). A
 valid estimate that the band misses is the worst output; an invalid one only costs availability.

@@ -395,3 +395,18 @@ def test_a_short_relaxation_length_approaches_the_lag_free_tire():
 def test_a_bad_relaxation_length_is_rejected(length: float) -> None:
     with pytest.raises(ValueError, match="relaxation_length"):
         SimConfig(relaxation_length=length)
+
+
+def test_a_steering_scale_multiplies_what_the_sensor_reads_not_the_motion():
+    base = SimConfig(duration=6.0, steering=sine_steering(math.radians(15.0), 6.0), noise=NO_NOISE,
+                     steering_offset=0.01)
+    plain, scaled = simulate(base), simulate(replace(base, steering_scale=1.03))
+    wheel = plain.steering - 0.01
+    np.testing.assert_allclose(scaled.steering, 1.03 * wheel + 0.01, rtol=0.0, atol=1e-15)
+    np.testing.assert_array_equal(scaled.truth_yaw_rate, plain.truth_yaw_rate)
+
+
+@pytest.mark.parametrize("scale", [0.0, -1.0, math.nan])
+def test_a_bad_steering_scale_is_rejected(scale: float) -> None:
+    with pytest.raises(ValueError, match="steering_scale"):
+        SimConfig(steering_scale=scale)

@@ -188,3 +188,15 @@ def test_relaxation_length_flag_gives_the_simulators_lagging_tires(tmp_path: Pat
     assert np.max(np.abs(wrap_angle(headings - simulate(config).heading))) > 1e-3
     refused = run("simulate", "-o", tmp_path / "bad", "--relaxation-length", "-1")
     assert refused.returncode != 0 and "relaxation_length" in refused.stderr
+
+
+def test_steering_scale_flag_gives_the_simulators_scaled_steering(tmp_path: Path) -> None:
+    """--steering-scale 1.03: the bag's steering angles are the simulator's with the sensor's gain error."""
+    bag = tmp_path / "scaled"
+    result = run("simulate", "-o", bag, "--scenario", "sine", "--duration", "10", "--seed", "3",
+                 "--steering-scale", "1.03")
+    assert result.returncode == 0, result.stderr
+    steering = np.array([m.position[0] for m in messages(bag, "/steering_angle")])
+    config = build_config("sine", duration=10.0, seed=3)
+    np.testing.assert_allclose(steering, simulate(replace(config, steering_scale=1.03)).steering, atol=1e-12)
+    assert np.max(np.abs(steering - simulate(config).steering)) > 1e-3
