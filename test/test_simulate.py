@@ -161,42 +161,36 @@ def test_imperfection_flags_write_a_late_offset_gnss_first_bag(tmp_path: Path) -
     assert order[first_tie][0] == "/steering_angle"
 
 
-def test_gnss_correlation_time_flag_gives_the_simulators_correlated_errors(tmp_path: Path) -> None:
-    """--gnss-correlation-time 2: the bag's headings are the simulator's with Gauss-Markov errors (test_sim.py)."""
-    bag = tmp_path / "correlated"
-    result = run("simulate", "-o", bag, "--scenario", "sine", "--duration", "20", "--seed", "3",
-                 "--gnss-correlation-time", "2")
+def _headings(bag: Path) -> np.ndarray:
+    return np.array([2.0 * math.atan2(m.quaternion.z, m.quaternion.w) for m in messages(bag, "/gnss/heading")])
+
+
+def _steering(bag: Path) -> np.ndarray:
+    return np.array([m.position[0] for m in messages(bag, "/steering_angle")])
+
+
+@pytest.mark.parametrize(("flags", "change", "read", "simulated", "apart"), [
+    (("--gnss-correlation-time", "2"), lambda c: replace(c, noise=SensorNoise(correlation_time=2.0)), _headings,
+     lambda r: r.heading, 1e-4),  # Gauss-Markov errors (test_sim.py)
+    (("--relaxation-length", "0.3"), lambda c: replace(c, relaxation_length=0.3), _headings,
+     lambda r: r.heading, 1e-3),  # tires lagging their slip
+    (("--steering-scale", "1.03"), lambda c: replace(c, steering_scale=1.03), _steering,
+     lambda r: r.steering, 1e-3),  # the steering sensor's gain error
+], ids=["gnss-correlation-time", "relaxation-length", "steering-scale"])
+def test_an_imperfection_flag_gives_the_simulators_drive(tmp_path: Path, flags, change, read, simulated,  # noqa: ANN001
+                                                         apart: float) -> None:
+    """The bag's headings (or steering angles) are the simulator's with the imperfection, and differ from without."""
+    bag = tmp_path / "imperfect"
+    result = run("simulate", "-o", bag, "--scenario", "sine", "--duration", "20", "--seed", "3", *flags)
     assert result.returncode == 0, result.stderr
-    headings = np.array([2.0 * math.atan2(m.quaternion.z, m.quaternion.w) for m in messages(bag, "/gnss/heading")])
     config = build_config("sine", duration=20.0, seed=3)
-    correlated = simulate(replace(config, noise=SensorNoise(correlation_time=2.0)))
-    white = simulate(config)
-    np.testing.assert_allclose(wrap_angle(headings - correlated.heading), 0.0, atol=1e-9)
-    assert np.max(np.abs(wrap_angle(headings - white.heading))) > 1e-4
+    recorded = read(bag)
+    np.testing.assert_allclose(wrap_angle(recorded - simulated(simulate(change(config)))), 0.0, atol=1e-9)
+    assert np.max(np.abs(wrap_angle(recorded - simulated(simulate(config))))) > apart
 
 
-def test_relaxation_length_flag_gives_the_simulators_lagging_tires(tmp_path: Path) -> None:
-    """--relaxation-length 0.3: the bag's headings are those of the simulator with lagging tires."""
-    bag = tmp_path / "lagging"
-    result = run("simulate", "-o", bag, "--scenario", "sine", "--duration", "20", "--seed", "3",
-                 "--relaxation-length", "0.3")
-    assert result.returncode == 0, result.stderr
-    headings = np.array([2.0 * math.atan2(m.quaternion.z, m.quaternion.w) for m in messages(bag, "/gnss/heading")])
-    config = build_config("sine", duration=20.0, seed=3)
-    lagging = simulate(replace(config, relaxation_length=0.3))
-    np.testing.assert_allclose(wrap_angle(headings - lagging.heading), 0.0, atol=1e-9)
-    assert np.max(np.abs(wrap_angle(headings - simulate(config).heading))) > 1e-3
-    refused = run("simulate", "-o", tmp_path / "bad", "--relaxation-length", "-1")
-    assert refused.returncode != 0 and "relaxation_length" in refused.stderr
-
-
-def test_steering_scale_flag_gives_the_simulators_scaled_steering(tmp_path: Path) -> None:
-    """--steering-scale 1.03: the bag's steering angles are the simulator's with the sensor's gain error."""
-    bag = tmp_path / "scaled"
-    result = run("simulate", "-o", bag, "--scenario", "sine", "--duration", "10", "--seed", "3",
-                 "--steering-scale", "1.03")
-    assert result.returncode == 0, result.stderr
-    steering = np.array([m.position[0] for m in messages(bag, "/steering_angle")])
-    config = build_config("sine", duration=10.0, seed=3)
-    np.testing.assert_allclose(steering, simulate(replace(config, steering_scale=1.03)).steering, atol=1e-12)
-    assert np.max(np.abs(steering - simulate(config).steering)) > 1e-3
+@pytest.mark.parametrize(("flag", "field"), [("--relaxation-length", "relaxation_length"),
+                                             ("--steering-scale", "steering_scale")])
+def test_a_bad_imperfection_value_is_refused(tmp_path: Path, flag: str, field: str) -> None:
+    refused = run("simulate", "-o", tmp_path / "bad", flag, "-1")
+    assert refused.returncode != 0 and field in refused.stderr
