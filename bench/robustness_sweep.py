@@ -2,7 +2,8 @@
 
 Not a test (the tests assert each claim on its own scenario). Each row is one condition of the
 project's simulator (test/drives.py: 2 m/s, +-15 deg sine steer of 6 s, 5 Hz GNSS, 120 s, unless the
-row changes it) over ``--seeds`` seeds, filtered with the default parameters (the vehicle's own
+row changes it), or the same drive from a simulator that shares no code with it
+(test/independent_sim.py: the "independent sim" rows) over ``--seeds`` seeds, filtered with the default parameters (the vehicle's own
 parameters where the row changes the vehicle; a row's ``filter_vehicle`` configures the estimator with
 other constants than the simulated vehicle's). From 30 s on it prints the share of epochs flagged
 valid, the share of valid epochs whose +-2 sigma band misses the truth (Cf or Cr) or whose error
@@ -25,6 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 
 from drives import run_drive, sine_drive  # noqa: E402
+from independent_sim import independent_drive  # noqa: E402
 from test_validity import epochs_of  # noqa: E402
 
 from transplanter_ident.config.parameters import (  # noqa: E402
@@ -35,7 +37,7 @@ from transplanter_ident.config.parameters import (  # noqa: E402
 )
 from transplanter_ident.evaluation.validity import decide_sequence  # noqa: E402
 from transplanter_ident.sim.signals import StiffnessSchedule, multisine_steering, sine_steering  # noqa: E402
-from transplanter_ident.sim.simulator import SensorNoise, simulate  # noqa: E402
+from transplanter_ident.sim.simulator import SensorNoise, SimResult, simulate  # noqa: E402
 
 DEG = math.radians
 NOISE = SensorNoise()
@@ -91,17 +93,31 @@ ROWS: dict[str, dict[str, object]] = {
     "stiffness drifting -40 % over 4 min": {"duration": 240.0, "stiffness": StiffnessSchedule(
         times=(0.0, 240.0), front=(8000.0, 4800.0), rear=(10000.0, 6000.0), transition=240.0)},
 }
+#: the same drive from a simulator that shares no code with the package's (test/independent_sim.py)
+INDEPENDENT_ROWS: dict[str, dict[str, object]] = {
+    "independent sim, Magic Formula mu 0.8": {},
+    "independent sim, Magic Formula mu 0.3": {"friction": 0.3},
+    "independent sim, relaxation 0.3 m": {"relaxation_length": 0.3},
+}
+ALL_ROWS = {**ROWS, **INDEPENDENT_ROWS}
 
 
-def row_figures(overrides: dict[str, object], seeds: int, options: FilterOptions,
-                settings: ValiditySettings | None = None) -> str:
+def drive(name: str, seed: int) -> tuple[SimResult, VehicleParams]:
+    """One seed of a row: (sensor samples and truth, the vehicle constants the estimator is configured with)."""
+    overrides = dict(ALL_ROWS[name])
+    if name in INDEPENDENT_ROWS:
+        return independent_drive(seed, **overrides), VehicleParams()
+    told = overrides.pop("filter_vehicle", None)  # the estimator configured with other vehicle constants
+    sim = sine_drive(seed, **overrides)
+    return simulate(sim), told or sim.vehicle
+
+
+def row_figures(name: str, seeds: int, options: FilterOptions, settings: ValiditySettings | None = None) -> str:
     settings = settings or ValiditySettings()
     shares, finals = [], []
-    filter_vehicle = overrides.get("filter_vehicle")  # the estimator configured with other vehicle constants
     for seed in range(seeds):
-        sim = sine_drive(seed, **{k: v for k, v in overrides.items() if k != "filter_vehicle"})
-        result = simulate(sim)
-        config = EstimatorConfig(vehicle=filter_vehicle or sim.vehicle, options=options)
+        result, told = drive(name, seed)
+        config = EstimatorConfig(vehicle=told, options=options)
         run = run_drive(result, config)
         valid = decide_sequence(config, settings, epochs_of(result), run.outputs)
         after = run.t >= 30.0
@@ -132,9 +148,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="a FilterOptions field (number) to set, e.g. saturation_prior=0 (repeatable)")
     parser.add_argument("--validity", action="append", default=[], metavar="NAME=VALUE",
                         help="a ValiditySettings field (number) to set, e.g. max_autocorrelation=1 (repeatable)")
-    parser.add_argument("rows", nargs="*", help=f"rows to run (default: all): {', '.join(ROWS)}")
+    parser.add_argument("rows", nargs="*", help=f"rows to run (default: all): {', '.join(ALL_ROWS)}")
     args = parser.parse_args(argv)
-    unknown = [r for r in args.rows if r not in ROWS]
+    unknown = [r for r in args.rows if r not in ALL_ROWS]
     if unknown or args.seeds < 1:
         parser.error(f"unknown rows {unknown}" if unknown else "--seeds must be >= 1")
     try:
@@ -142,11 +158,11 @@ def main(argv: list[str] | None = None) -> int:
         settings = _with(ValiditySettings(), args.validity)
     except (TypeError, ValueError) as error:
         parser.error(f"--option/--validity: {error}")
-    width = max(len(name) for name in ROWS)
+    width = max(len(name) for name in ALL_ROWS)
     print(f"seeds 0-{args.seeds - 1}, from 30 s on; defaults{''.join(' ' + o for o in args.option + args.validity)}")
     print(f"{'condition':<{width}}  valid  valid&missed  valid&err>10%  missed  final |err| median, worst [%]")
-    for name in args.rows or ROWS:
-        print(f"{name:<{width}}  {row_figures(ROWS[name], args.seeds, options, settings)}", flush=True)
+    for name in args.rows or ALL_ROWS:
+        print(f"{name:<{width}}  {row_figures(name, args.seeds, options, settings)}", flush=True)
     return 0
 
 
