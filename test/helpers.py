@@ -42,9 +42,9 @@ def sim_samples(result: SimResult, *, gnss_first: bool = False) -> list[Sample]:
 
 
 def assembler_settings(vehicle: VehicleParams, **overrides: object) -> AssemblerSettings:
-    """AssemblerSettings with the vehicle's lever arm and steering limit."""
+    """AssemblerSettings with the vehicle's lever arm, steering limit and steering scale."""
     values = {"antenna_x": vehicle.antenna_x, "antenna_y": vehicle.antenna_y,
-              "max_steering": vehicle.max_steering}
+              "max_steering": vehicle.max_steering, "steering_scale": vehicle.steering_scale}
     values.update(overrides)
     return AssemblerSettings(**values)
 

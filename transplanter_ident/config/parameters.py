@@ -27,6 +27,7 @@ class VehicleParams:
     antenna_y: float = 0.0
     max_steering: float = 0.7
     steering_offset: float = 0.0  # rad: wheel angle = sensor - offset (initial value, or fixed)
+    steering_scale: float = 1.0  # wheel angle per steering-sensor angle (the sensor's calibrated gain)
     heading_offset: float = 0.0  # rad: yaw of the GNSS heading source relative to the vehicle x axis
     max_speed: float = 5.0  # m/s: a GNSS speed beyond it is rejected
     max_lateral_speed: float = 1.0  # m/s: an epoch with |vy| at the CG beyond it is rejected
@@ -35,7 +36,7 @@ class VehicleParams:
 
     def __post_init__(self) -> None:
         check_fields(self, "vehicle", positive=("mass", "lf", "lr", "max_steering", "max_speed", "max_lateral_speed",
-                                                "max_yaw_rate", "max_steering_rate"),
+                                                "max_yaw_rate", "max_steering_rate", "steering_scale"),
                      finite=("iz", "antenna_x", "antenna_y", "steering_offset", "heading_offset"))
 
     @property

@@ -128,6 +128,9 @@ SCHEMA: tuple[Param, ...] = (
     _float("vehicle.max_steering", 0.7, "rad", "steering limit; a sample beyond it is rejected", 0.001, 1.6),
     _float("vehicle.steering_offset", 0.0, "rad", "steering-sensor offset, wheel angle = sensor - offset: the "
            "initial value when estimated (ekf.estimate_steering_offset), else the fixed one", -0.3, 0.3),
+    _float("vehicle.steering_scale", 1.0, "", "wheel angle per steering-sensor angle: the assembler multiplies "
+           "every steering sample by it (before the offset: wheel = scale x sensor - offset). A sensor reading 1 % "
+           "more than the wheel moves Cf by about -5 % and Cr by +8 % (README)", 0.5, 2.0),
     _float("vehicle.heading_offset", 0.0, "rad", "yaw of the GNSS heading source relative to the vehicle x axis, "
            "counter-clockwise (subtracted from the heading): e.g. +1.5708 for a dual-antenna baseline pointing to "
            "the left; for one nav_msgs/Odometry topic serving velocity and heading it turns the twist too",

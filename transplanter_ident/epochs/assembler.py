@@ -64,8 +64,7 @@ from transplanter_ident.epochs.steering_line import interval_line
 STAMP_EPSILON = 1.0e-6
 #: consecutive epochs beyond a physical limit after which the latest sample becomes the new start
 REANCHOR_AFTER = 2
-#: the most steering samples kept, whatever their rate (the buffer is also trimmed by time): 10 s at 2 kHz
-MAX_STEERING_SAMPLES = 20_000
+MAX_STEERING_SAMPLES = 20_000  #: steering samples kept at most, at any rate (also trimmed by time): 10 s at 2 kHz
 
 
 @dataclass(frozen=True)
@@ -89,6 +88,7 @@ class AssemblerSettings:
     max_lateral_speed: float = math.inf  # m/s: |vy| at the CG
     max_yaw_rate: float = math.inf  # rad/s: |interval-mean yaw rate|
     max_steering_rate: float = math.inf  # rad/s: |change from the last steering sample| / dt
+    steering_scale: float = 1.0  # wheel angle per sensor angle; the limits above apply to the sensor's reading
 
     @classmethod
     def from_params(cls, params: EstimatorParams) -> AssemblerSettings:
@@ -109,7 +109,7 @@ class AssemblerSettings:
                    body_velocity_rotation=vehicle.heading_offset if one_odometry else 0.0,
                    max_stamp_jump=params.gnss.max_stamp_jump, max_speed=vehicle.max_speed,
                    max_lateral_speed=vehicle.max_lateral_speed, max_yaw_rate=vehicle.max_yaw_rate,
-                   max_steering_rate=vehicle.max_steering_rate)
+                   max_steering_rate=vehicle.max_steering_rate, steering_scale=vehicle.steering_scale)
 
     def __post_init__(self) -> None:
         for name in ("velocity_frame", "heading_frame"):
@@ -229,7 +229,7 @@ class EpochAssembler:
         self._guard.accept("steering", stamp)
         self._last_steering_stamp = stamp
         self._last_steering_angle = angle
-        self._steering.append((stamp, angle))
+        self._steering.append((stamp, self.settings.steering_scale * angle))
         while len(self._steering) > 2 and self._steering[0][0] < stamp - self.settings.steering_buffer:
             self._steering.popleft()
         return self._flush()

@@ -108,7 +108,8 @@ def assemble_batch(settings: AssemblerSettings, streams: Sequence[SampleStream],
         return None
     steer = np.flatnonzero(kind == KINDS["steering"])
     source_at = np.searchsorted(keys, np.asarray(source_keys, dtype=np.int64), side="left")
-    return _run(settings, pairs, steer, stamp[steer], values[steer, 0], position, early, source_at)
+    return _run(settings, pairs, steer, stamp[steer], settings.steering_scale * values[steer, 0], position, early,
+                source_at)
 
 
 def _merge(streams: Sequence[SampleStream]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
