@@ -1,4 +1,6 @@
-"""``tuner --estimate-delay``: find ``gnss.delay`` on the bags before tuning Q/R (issue #13 item 4).
+"""``tuner --estimate-delay`` and ``--estimate-steering-scale``: calibration constants found on the bags before Q/R.
+
+``--estimate-delay`` finds ``gnss.delay`` (issue #13 item 4):
 
 Each bag is decoded once into its input samples (:func:`transplanter_ident.bags.inputs.read_bag_inputs`);
 :func:`transplanter_ident.tuning.delay.search_delay` then scores each candidate delay by
@@ -6,6 +8,10 @@ re-assembling every bag's epochs with it and running the filter at the starting 
 (bag, delay) pairs of a grid run in parallel on the tuner's local backend). The bags' epochs at
 the estimated delay are what the Q/R search uses, and they go into the epoch cache under the
 parameters with that delay, so a later ``tuner --params-file OUT.yaml`` run skips decoding.
+
+``--estimate-steering-scale`` then finds ``vehicle.steering_scale`` on those epochs
+(:mod:`transplanter_ident.tuning.steering_scale`; the (bag, scale) pairs of a grid in parallel) and
+hands on the epochs at the estimated scale, cached under the parameters with it.
 """
 
 from __future__ import annotations
@@ -27,6 +33,13 @@ from transplanter_ident.tuning.delay import (
     with_delay,
 )
 from transplanter_ident.tuning.parallel import Backend
+from transplanter_ident.tuning.steering_scale import (
+    ScaleEstimate,
+    pooled_scale_objective,
+    scaled_epochs,
+    search_steering_scale,
+    with_steering_scale,
+)
 
 
 @dataclass(frozen=True)
@@ -63,3 +76,20 @@ def estimate_bag_delay(bags: Sequence[str], params: EstimatorParams, backend: Ba
     decoded = [store_bag_epochs(item.bag, chosen, assemble_epochs(item.samples, params, estimate.delay),
                                 item.truth, cache) for item in inputs]
     return DelayRun(estimate, chosen, decoded)
+
+
+def estimate_bag_steering_scale(decoded: Sequence[Any], params: EstimatorParams, backend: Backend, *,
+                                objective: str, tune_stiffness_noise: bool = False, cache: Path | None = None,
+                                stream: Any = None) -> tuple[ScaleEstimate, EstimatorParams, list[Any]]:
+    """Search the scale on the decoded bags; return it, the parameters with it, and the bags' epochs at it."""
+    from transplanter_ident.bags.cache import store_bag_epochs  # rosbags only where bags are read
+
+    configured = params.config.vehicle.steering_scale
+    epochs = [item.epochs for item in decoded]
+    estimate = search_steering_scale(pooled_scale_objective(epochs, params.config, objective, tune_stiffness_noise,
+                                                            backend.map), configured)
+    print(f"tuner: {estimate.format(objective)}", file=stream if stream is not None else sys.stderr, flush=True)
+    chosen = with_steering_scale(params, estimate.scale)
+    factor = estimate.scale / configured
+    return estimate, chosen, [store_bag_epochs(item.bag, chosen, scaled_epochs(e, factor), item.truth, cache)
+                              for item, e in zip(decoded, epochs, strict=True)]

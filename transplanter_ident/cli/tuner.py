@@ -2,13 +2,14 @@
 
 ``tuner BAG [BAG ...] -o OUT.yaml [--params-file P.yaml ...] [--algorithm ipso|pso|cmaes]
 [--objective mae|nll] [--particles N] [--iterations N] [--seed N] [--report DIR] [--jobs N]
-[--dask ADDRESS] [--epoch-cache DIR | --no-epoch-cache] [--estimate-delay] [--tune-stiffness-noise]
-[--q-span DECADES] [--no-leave-one-out] [--debug]``
+[--dask ADDRESS] [--epoch-cache DIR | --no-epoch-cache] [--estimate-delay] [--estimate-steering-scale]
+[--tune-stiffness-noise] [--q-span DECADES] [--no-leave-one-out] [--debug]``
 
 1. reads each bag's epochs with the layered parameters, decoding a bag only if the epoch
    cache (:mod:`transplanter_ident.bags.cache`) does not hold it yet; with ``--estimate-delay``,
    decodes each bag once and first searches ``gnss.delay`` over 0-0.3 s on the same objective at
-   the starting Q/R (:mod:`transplanter_ident.cli.delay_search`), then uses the epochs at that delay;
+   the starting Q/R, with ``--estimate-steering-scale`` then ``vehicle.steering_scale``
+   (:mod:`transplanter_ident.cli.delay_search`), and uses the epochs at the estimates;
 2. searches the log10 diagonal of Q and R (eq. 22, :mod:`tuning`): the physical noises (vy, r,
    psi process noise and R; the stiffness and offset random walks and the change mechanism keep
    their designed values unless ``--tune-stiffness-noise``; each process noise within
@@ -18,19 +19,18 @@
    one of the initial candidates; one progress line per iteration. The candidates run on
    ``--jobs`` processes or a Dask cluster (:mod:`transplanter_ident.tuning.parallel`): the
    result for a seed is the same either way;
-3. writes OUT.yaml atomically: ``ekf.process_noise``, ``ekf.measurement_noise`` (and the heading
-   Q they were tuned with) plus the ``ekf`` options they are valid for, and ``gnss.delay`` when
-   estimated, under a comment header;
-   it layers over the defaults (``--params-file config/estimator.yaml --params-file OUT.yaml``);
+3. writes OUT.yaml atomically: ``ekf.process_noise``, ``ekf.measurement_noise`` (and the heading Q they
+   were tuned with), the ``ekf`` options they are valid for, and the estimates of step 1, under a comment
+   header; it layers over the defaults (``--params-file config/estimator.yaml --params-file OUT.yaml``);
 4. prints the paper's Table 2 for the starting and the tuned Q/R on each bag, and the
    tuned/start ratios of the mean errors; with several bags, a leave-one-bag-out table
    (:func:`transplanter_ident.tuning.multi.leave_one_out`); ``--report DIR`` adds the plots
    of Figs. 4-7 and the tables.
 
-Every failure (unreadable bag, too few epochs, unwritable output, bad flag) is one line on
-stderr and a non-zero exit; a half-written YAML is never left behind. When no candidate
-produced a finite objective (every one diverged, or never updated: ``ekf.DIVERGENCE_PENALTY``),
-nothing is written. The ``--report`` folder appears whole, together with OUT.yaml, or not at all.
+Every failure (unreadable bag, too few epochs, unwritable output, bad flag) is one line on stderr and
+a non-zero exit; a half-written YAML is never left behind. When no candidate produced a finite
+objective (every one diverged, or never updated: ``ekf.DIVERGENCE_PENALTY``), nothing is written.
+The ``--report`` folder appears whole, together with OUT.yaml, or not at all.
 """
 
 from __future__ import annotations
@@ -147,6 +147,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--estimate-delay", action="store_true",
                         help="first search gnss.delay (0-0.3 s) on the bags with the same objective at the starting "
                              "Q/R, then tune Q/R at that delay; writes gnss.delay into OUT.yaml")
+    parser.add_argument("--estimate-steering-scale", action="store_true", help="then search vehicle.steering_scale "
+                        "(0.95-1.05 x the configured) likewise, tune Q/R at it; writes it into OUT.yaml")
     parser.add_argument("--tune-stiffness-noise", action="store_true",
                         help="also tune the stiffness random walk (q_Cf, q_Cr of ekf.process_noise); by default "
                              "only the physical noises (vy, r, psi and R) are tuned and the stiffness and offset "
@@ -203,9 +205,6 @@ def progress_printer(total: int, stream: Any = None) -> Callable[[IterationRecor
               file=out, flush=True)
 
     return show
-
-
-# --------------------------------------------------------------------------- command
 
 
 def cache_dir(args: argparse.Namespace) -> Path | None:
@@ -270,17 +269,25 @@ def _run(args: argparse.Namespace) -> int:
 def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend, remote: Backend) -> int:
     if args.report:
         check_report_path(args.report)
-    delay = None
+    estimated: dict[str, tuple[float, str]] = {}  # calibration key -> (value, the search's line)
     if args.estimate_delay:  # gnss.delay first (issue #13 item 4), then Q/R on the epochs at that delay
         from transplanter_ident.cli.delay_search import estimate_bag_delay
 
         found = estimate_bag_delay(args.bags, params, local, objective=args.objective,
                                    tune_stiffness_noise=args.tune_stiffness_noise, cache=cache_dir(args),
                                    allow_partial=args.allow_partial)
-        delay, params, decoded = found.estimate, found.params, found.decoded
+        params, decoded = found.params, found.decoded
+        estimated["gnss.delay"] = (found.estimate.delay, found.estimate.format(args.objective))
         report_decoded(decoded, cache_dir(args), sys.stderr)
     else:
         decoded = load_bags(args.bags, params, local, cache_dir(args), allow_partial=args.allow_partial)
+    if args.estimate_steering_scale:  # on the epochs at the delay, ahead of Q/R
+        from transplanter_ident.cli.delay_search import estimate_bag_steering_scale
+
+        scale, params, decoded = estimate_bag_steering_scale(
+            decoded, params, local, objective=args.objective, tune_stiffness_noise=args.tune_stiffness_noise,
+            cache=cache_dir(args))
+        estimated["vehicle.steering_scale"] = (scale.scale, scale.format(args.objective))
     epochs = [item.epochs for item in decoded]
     truths = [item.truth for item in decoded]
     config = params.config
@@ -322,17 +329,17 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
                                              holdout=holdout)
         flat = tuned_parameters(outcome.tuned_config)
         header = header_comment(outcome, args.bags, [len(e) for e in epochs])
-        if delay is not None:
-            flat["gnss.delay"] = float(delay.delay)
-            header += f"\nestimated {delay.format(args.objective)}"
+        for key, (value, line) in estimated.items():
+            flat[key] = float(value)
+            header += f"\nestimated {line}"
         write_params_yaml(args.output, flat, header)
     print(f"{args.algorithm}: {args.objective} {outcome.start_fitness:.6g} -> {result.fitness:.6g} "
           f"({result.evaluations} evaluations, {outcome.seconds:.1f} s, seed {outcome.seed}); wrote {args.output}")
     for bag, (comparison, bound) in zip(args.bags, summaries, strict=True):
         print(comparison.format(f"Table 2 on {bag}"))
         print(f"  tuned Q/R, {bound}")
-    if delay is not None:
-        print(f"estimated {delay.format(args.objective)}")
+    for _, line in estimated.values():
+        print(f"estimated {line}")
     if holdout is not None:
         print(holdout.format())
     if args.report:

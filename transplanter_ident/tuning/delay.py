@@ -124,8 +124,17 @@ def _grid(low: float, high: float, step: float) -> list[float]:
 def search_delay(objective: DelayObjective, low: float = DELAY_RANGE[0], high: float = DELAY_RANGE[1],
                  coarse: float = COARSE_STEP, fine: float = FINE_STEP) -> DelayEstimate:
     """Minimise ``objective`` over [low, high]: a coarse grid, then a fine grid around its minimum."""
+    return DelayEstimate(*grid_search(objective, low, high, coarse, fine, "delay"))
+
+
+def grid_search(objective: DelayObjective, low: float, high: float, coarse: float, fine: float,
+                what: str = "grid") -> tuple[float, float, tuple[tuple[float, float], ...]]:
+    """(best point, its value, every (point, value) by point): a coarse grid, then a fine one around its minimum.
+
+    Ties go to the smaller point; a non-finite value counts as +inf. Shared by the calibration searches.
+    """
     if not (math.isfinite(low) and math.isfinite(high) and low < high and 0.0 < fine <= coarse):
-        raise ValueError(f"delay search: need low < high and 0 < fine <= coarse, got [{low}, {high}], {coarse}, "
+        raise ValueError(f"{what} search: need low < high and 0 < fine <= coarse, got [{low}, {high}], {coarse}, "
                          f"{fine}")
     seen: dict[float, float] = {}
 
@@ -139,4 +148,4 @@ def search_delay(objective: DelayObjective, low: float = DELAY_RANGE[0], high: f
     best = min(seen, key=lambda d: (seen[d], d))
     evaluate(_grid(max(low, best - coarse), min(high, best + coarse), fine))
     best = min(seen, key=lambda d: (seen[d], d))
-    return DelayEstimate(best, seen[best], tuple(sorted(seen.items())))
+    return best, seen[best], tuple(sorted(seen.items()))

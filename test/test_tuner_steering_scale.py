@@ -1,0 +1,89 @@
+"""``tuner --estimate-steering-scale``: the steering sensor's gain found on simulated drives.
+
+A sensor reading 1 % more than the wheel moves Cf by about -5 % and Cr by +8 % and the estimate stays
+valid (test_steering_scale.py), so the tuner searches ``vehicle.steering_scale`` like ``gnss.delay``:
+the objective at the starting Q/R over 0.95-1.05 x the configured scale, pooled over the bags
+(tuning/steering_scale.py). Measured on three identification drives (seeds 0-2) per sensor gain:
+1.02 -> 0.9820 (truth 0.9804), 0.99 -> 1.0115 (1.0101), 1.00 -> 1.0015; required within 0.5 %.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from drives import sine_drive
+from helpers import sim_samples
+from test_validity import epochs_of
+
+from transplanter_ident.cli import replay, tuner
+from transplanter_ident.config.parameters import EstimatorConfig
+from transplanter_ident.config.params_file import load_params
+from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
+from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.sim.simulator import simulate
+from transplanter_ident.tuning.steering_scale import (
+    pooled_scale_objective,
+    scaled_epochs,
+    search_steering_scale,
+)
+
+TOLERANCE = 0.005  # relative
+
+
+def test_the_search_finds_the_minimum_of_a_known_curve() -> None:
+    """A parabola in the factor with its minimum at 1.013: the scale is 0.8 x 1.013 within the fine step."""
+    estimate = search_steering_scale(lambda factors: [(f - 1.013) ** 2 for f in factors], 0.8)
+    assert estimate.scale == pytest.approx(0.8 * 1.013, abs=0.8 * 0.0005)
+    assert estimate.configured == 0.8 and len(estimate.points) > 20
+    with pytest.raises(ValueError, match="steering scale search"):
+        search_steering_scale(lambda factors: factors, 1.0, low=1.05, high=0.95)
+
+
+def test_scaling_the_epochs_equals_assembling_with_the_scale() -> None:
+    """scaled_epochs (the search's shortcut) matches the assembler with vehicle.steering_scale, to 1e-12."""
+    samples = sim_samples(simulate(sine_drive(0, duration=20.0)))
+    plain = EpochArrays(assemble(EpochAssembler(AssemblerSettings()), samples))
+    assembled = EpochArrays(assemble(EpochAssembler(AssemblerSettings(steering_scale=0.97)), samples))
+    shortcut = scaled_epochs(plain, 0.97)
+    for name in ("steering", "steering_rate", "t", "antenna_lateral_velocity", "heading"):
+        np.testing.assert_allclose(shortcut.column(name), assembled.column(name), rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("sensor_gain", [1.02, 0.99])
+def test_the_scale_is_found_within_half_a_percent(sensor_gain: float) -> None:
+    bags = [epochs_of(simulate(sine_drive(seed, steering_scale=sensor_gain))) for seed in range(3)]
+    estimate = search_steering_scale(pooled_scale_objective(bags, EstimatorConfig(), "nll"), 1.0)
+    assert abs(estimate.scale * sensor_gain - 1.0) <= TOLERANCE, estimate.format("nll")
+
+
+def _final_errors(text: str) -> tuple[float, float]:
+    match = re.search(r"final Cf ([-+\d.]+) %, Cr ([-+\d.]+) %", text)
+    assert match, text
+    return float(match.group(1)), float(match.group(2))
+
+
+def test_cli_writes_the_scale_and_replay_loads_it(tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    """Two drives with the sensor 2 % high: OUT.yaml holds the scale, and replay with it is right."""
+    from transplanter_ident.bags import write_sim_bag
+
+    bags = []
+    for seed in (0, 1):
+        bags.append(tmp_path / f"high{seed}")
+        write_sim_bag(simulate(replace(sine_drive(seed), steering_scale=1.02)), bags[-1])
+    out = tmp_path / "tuned.yaml"
+    assert tuner.main([*map(str, bags), "-o", str(out), "--estimate-steering-scale", "--particles", "4",
+                       "--iterations", "1", "--seed", "3", "--jobs", "1", "--no-epoch-cache",
+                       "--no-leave-one-out"]) == 0
+    printed = capsys.readouterr()
+    assert "estimated vehicle.steering_scale:" in printed.out and "# estimated vehicle.steering_scale:" in out.read_text()
+    assert abs(load_params([str(out)]).config.vehicle.steering_scale * 1.02 - 1.0) <= TOLERANCE
+
+    assert replay.main([str(bags[0])]) == 0
+    unset = _final_errors(capsys.readouterr().out)
+    assert replay.main([str(bags[0]), "--params-file", str(out)]) == 0
+    calibrated = _final_errors(capsys.readouterr().out)
+    assert max(map(abs, calibrated)) < 0.5 * max(map(abs, unset)), (calibrated, unset)
