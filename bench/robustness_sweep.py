@@ -66,6 +66,8 @@ ROWS: dict[str, dict[str, object]] = {
     "steering gain +1 %": {"steering_scale": 1.01},
     "steering gain -1 %": {"steering_scale": 0.99},
     "steering gain +3 %": {"steering_scale": 1.03},
+    "steering gain +3 %, vehicle.steering_scale set": {"steering_scale": 1.03,
+                                                        "filter_vehicle": VehicleParams(steering_scale=1.0 / 1.03)},
     "configured mass +10 %": {"filter_vehicle": replace(VehicleParams(), mass=792.0)},
     "configured yaw inertia +20 %": {"filter_vehicle": replace(VehicleParams(), iz=1.2 * VehicleParams().yaw_inertia)},
     "configured CG 5 cm back (lf +5 cm)": {"filter_vehicle": replace(VehicleParams(), lf=0.75, lr=0.35)},
@@ -119,7 +121,7 @@ def row_figures(name: str, seeds: int, options: FilterOptions, settings: Validit
         result, told = drive(name, seed)
         config = EstimatorConfig(vehicle=told, options=options)
         run = run_drive(result, config)
-        valid = decide_sequence(config, settings, epochs_of(result), run.outputs)
+        valid = decide_sequence(config, settings, epochs_of(result, steering_scale=told.steering_scale), run.outputs)
         after = run.t >= 30.0
         front, rear = run.covered()
         missed = ~(front & rear)
