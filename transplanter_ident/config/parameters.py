@@ -15,6 +15,10 @@ STIFFNESS_STATES = ("log", "linear")
 MEASUREMENTS = ("heading", "yaw_rate")
 
 
+#: where the steering sensor's angle is taken: the single-track angle, or one front wheel's (Ackermann)
+STEERING_SENSOR_WHEELS = ("center", "left", "right")
+
+
 @dataclass(frozen=True)
 class VehicleParams:
     """Rigid-body parameters of the 2-DOF bicycle model (paper eq. 4, Table 1)."""
@@ -28,6 +32,8 @@ class VehicleParams:
     max_steering: float = 0.7
     steering_offset: float = 0.0  # rad: wheel angle = sensor - offset (initial value, or fixed)
     steering_scale: float = 1.0  # wheel angle per steering-sensor angle (the sensor's calibrated gain)
+    steering_sensor_wheel: str = "center"  # the angle the sensor gives: center (single-track), left or right wheel
+    track_width: float = 0.0  # m, front track: turns one wheel's angle into the single-track one (Ackermann)
     heading_offset: float = 0.0  # rad: yaw of the GNSS heading source relative to the vehicle x axis
     max_speed: float = 5.0  # m/s: a GNSS speed beyond it is rejected
     max_lateral_speed: float = 1.0  # m/s: an epoch with |vy| at the CG beyond it is rejected
@@ -37,7 +43,11 @@ class VehicleParams:
     def __post_init__(self) -> None:
         check_fields(self, "vehicle", positive=("mass", "lf", "lr", "max_steering", "max_speed", "max_lateral_speed",
                                                 "max_yaw_rate", "max_steering_rate", "steering_scale"),
-                     finite=("iz", "antenna_x", "antenna_y", "steering_offset", "heading_offset"))
+                     finite=("iz", "antenna_x", "antenna_y", "steering_offset", "heading_offset"),
+                     non_negative=("track_width",))
+        _check_choice("vehicle.steering_sensor_wheel", self.steering_sensor_wheel, STEERING_SENSOR_WHEELS)
+        if self.steering_sensor_wheel != "center" and not self.track_width > 0.0:
+            raise ValueError("vehicle.track_width must be positive for a steering sensor on one wheel")
 
     @property
     def yaw_inertia(self) -> float:

@@ -21,7 +21,13 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from transplanter_ident.config.parameters import DISCRETIZATIONS, MEASUREMENTS, NOISE_UNITS, STIFFNESS_STATES
+from transplanter_ident.config.parameters import (
+    DISCRETIZATIONS,
+    MEASUREMENTS,
+    NOISE_UNITS,
+    STEERING_SENSOR_WHEELS,
+    STIFFNESS_STATES,
+)
 
 FRAMES = ("enu", "ned")
 KINDS = ("float", "int", "bool", "str", "float_list")
@@ -131,6 +137,11 @@ SCHEMA: tuple[Param, ...] = (
     _float("vehicle.steering_scale", 1.0, "", "wheel angle per steering-sensor angle: the assembler multiplies "
            "every steering sample by it (before the offset: wheel = scale x sensor - offset). A sensor reading 1 % "
            "more than the wheel moves Cf by about -5 % and Cr by +8 % (README)", 0.5, 2.0),
+    _str("vehicle.steering_sensor_wheel", "center", "the angle the steering sensor gives: center (the "
+         "single-track angle of the bicycle model) or that of the left or right front wheel, turned into the "
+         "single-track one with vehicle.track_width (Ackermann: cot delta = mean of the wheels' cot)",
+         STEERING_SENSOR_WHEELS),
+    _float("vehicle.track_width", 0.0, "m", "front track, for a steering sensor on one wheel", 0.0, 10.0),
     _float("vehicle.heading_offset", 0.0, "rad", "yaw of the GNSS heading source relative to the vehicle x axis, "
            "counter-clockwise (subtracted from the heading): e.g. +1.5708 for a dual-antenna baseline pointing to "
            "the left; for one nav_msgs/Odometry topic serving velocity and heading it turns the twist too",

@@ -10,23 +10,23 @@ Here, for each GNSS epoch t_k (velocity and heading paired by stamp, :mod:`.pair
   the antenna (a nav_msgs/Odometry twist, :meth:`EpochAssembler.add_body_velocity`, turned by
   ``body_velocity_rotation`` when its child frame is the heading source's);
 * yaw rate: the interval mean over [t_{k-1}, t_k] from heading increments (never a derivative);
-* timing: a GNSS sample stamped t describes the motion at t - ``gnss_delay`` (drivers that
-  stamp on arrival); the epoch time and the steering interval use that time;
-* lever arm: the filter measures the antenna's lateral velocity (h(x) = vy + ax r); the CG
-  values vy_cg = vy - r ax (display) and vx_cg = vx + r ay (the speed input) use the interval r;
-* inputs: vx averaged over [t_{k-1}, t_k], and the steering angle over the interval as its
-  least-squares line (mean and slope) through the faster steering stream, interpolated
-  linearly between its samples. The interval mean is DESIGN.md's input; the slope lets the
-  exact model follow a ramp, which matters because at 2 m/s the lateral dynamics (time
-  constant ~40 ms) are much faster than a 5 Hz GNSS interval.
+* timing: a GNSS sample stamped t describes the motion at t - ``gnss_delay`` (drivers that stamp on
+  arrival); the epoch time and the steering interval use that time;
+* lever arm: the filter measures the antenna's lateral velocity (h(x) = vy + ax r); the CG values
+  vy_cg = vy - r ax (display) and vx_cg = vx + r ay (the speed input) use the interval r;
+* inputs: vx averaged over [t_{k-1}, t_k]; the steering angle (the sensor's x ``steering_scale``, made
+  the single-track angle for a sensor on one wheel, :func:`.steering_line.single_track_angle`) over the
+  interval as its least-squares line (mean, DESIGN.md's input, and slope) through the faster stream,
+  linear between samples: the exact model follows the ramp, which matters as at 2 m/s the lateral
+  dynamics (~40 ms) are much faster than a 5 Hz GNSS interval.
 
-Bad input (DESIGN.md section 6, issue #14) is rejected with a reason and a kind (:mod:`.checks`):
-non-finite values, invalid markers, quaternions that are no orientation, stamps out of order, a
-stamp far from the others (:mod:`.stamps`: an outlier, never the new reference; a lasting time
-step re-synchronises by itself), and the vehicle's physical limits: |speed|, a steering spike
-(faster than max_steering_rate; a second in a row is a real jump), then per epoch |yaw rate| and
-|lateral speed| at the CG. An epoch beyond a limit is dropped and does not become the
-next epoch's start, so one bad heading costs one epoch, not two; two in a row re-anchor.
+Bad input (DESIGN.md section 6, issue #14) is rejected with a reason and a kind (:mod:`.checks`): non-finite
+values, invalid markers, quaternions that are no orientation, stamps out of order, a stamp far from the
+others (:mod:`.stamps`: an outlier, never the new reference; a lasting time step re-synchronises by itself),
+and the vehicle's physical limits: |speed|, a steering spike (faster than max_steering_rate; a second in a
+row is a real jump), then per epoch |yaw rate| and |lateral speed| at the CG. An epoch beyond a limit is
+dropped and does not become the next epoch's start, so one bad heading costs one epoch, not two; two in a
+row re-anchor.
 
 An epoch is formed only once the steering stream covers its interval (a steering sample at or after t_k), or
 at the latest when a GNSS epoch more than ``steering.max_wait`` later is matched (then it is counted as
@@ -42,8 +42,6 @@ from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-from transplanter_ident.config.params_file import EstimatorParams
-from transplanter_ident.config.schema import FRAMES
 from transplanter_ident.epochs import checks
 from transplanter_ident.epochs.epoch import Epoch, Rejection
 from transplanter_ident.epochs.frames import (
@@ -57,64 +55,15 @@ from transplanter_ident.epochs.frames import (
     velocity_to_enu,
 )
 from transplanter_ident.epochs.pairing import GnssPairer, PairingStats, Unpaired
+from transplanter_ident.epochs.settings import AssemblerSettings
 from transplanter_ident.epochs.stamps import StampGuard, Verdict
-from transplanter_ident.epochs.steering_line import interval_line
+from transplanter_ident.epochs.steering_line import interval_line, single_track_angle
 
 #: s: stamps closer than this count as the same instant (clocks written as float seconds)
 STAMP_EPSILON = 1.0e-6
 #: consecutive epochs beyond a physical limit after which the latest sample becomes the new start
 REANCHOR_AFTER = 2
 MAX_STEERING_SAMPLES = 20_000  #: steering samples kept at most, at any rate (also trimmed by time): 10 s at 2 kHz
-
-
-@dataclass(frozen=True)
-class AssemblerSettings:
-    """How samples become epochs (the limits default to none; :meth:`from_params` takes the vehicle's)."""
-
-    velocity_frame: str = "enu"
-    heading_frame: str = "enu"
-    antenna_x: float = 0.0
-    antenna_y: float = 0.0
-    max_steering: float = 0.7
-    match_tolerance: float = 0.02  # s between velocity and heading stamps of one epoch
-    steering_timeout: float = 0.5  # s: a newer steering sample must exist within this of t_k
-    steering_wait: float = 0.25  # s: an uncovered epoch goes once a GNSS epoch more than this later is matched
-    gnss_delay: float = 0.0  # s: GNSS stamped t describes the motion at t - gnss_delay
-    steering_buffer: float = 10.0  # s of steering history kept (bounded memory without GNSS)
-    heading_offset: float = 0.0  # rad: yaw of the heading source relative to the vehicle x axis (subtracted)
-    body_velocity_rotation: float = 0.0  # rad: yaw of a body-frame velocity's axes relative to the vehicle x axis
-    max_stamp_jump: float = 1.0  # s: a stamp further from the others is an outlier
-    max_speed: float = math.inf  # m/s: |GNSS ground speed| limit
-    max_lateral_speed: float = math.inf  # m/s: |vy| at the CG
-    max_yaw_rate: float = math.inf  # rad/s: |interval-mean yaw rate|
-    max_steering_rate: float = math.inf  # rad/s: |change from the last steering sample| / dt
-    steering_scale: float = 1.0  # wheel angle per sensor angle; the limits above apply to the sensor's reading
-
-    @classmethod
-    def from_params(cls, params: EstimatorParams) -> AssemblerSettings:
-        """Frames, lever arm, limits and GNSS timing from the parameters (node and bags alike).
-
-        A nav_msgs/Odometry that serves as velocity and heading on one topic reports its twist in the
-        frame whose yaw it reports, so ``vehicle.heading_offset`` turns that twist too.
-        """
-        vehicle = params.config.vehicle
-        extra = params.extra
-        one_odometry = (params.topics.velocity == params.topics.heading
-                        and str(extra.get("topics.velocity_type", "")).endswith("Odometry")
-                        and str(extra.get("topics.heading_type", "")).endswith("Odometry"))
-        return cls(velocity_frame=params.frames.velocity, heading_frame=params.frames.heading,
-                   antenna_x=vehicle.antenna_x, antenna_y=vehicle.antenna_y, max_steering=vehicle.max_steering,
-                   match_tolerance=params.gnss.pairing_tolerance, gnss_delay=params.gnss.delay,
-                   steering_wait=params.steering.max_wait, heading_offset=vehicle.heading_offset,
-                   body_velocity_rotation=vehicle.heading_offset if one_odometry else 0.0,
-                   max_stamp_jump=params.gnss.max_stamp_jump, max_speed=vehicle.max_speed,
-                   max_lateral_speed=vehicle.max_lateral_speed, max_yaw_rate=vehicle.max_yaw_rate,
-                   max_steering_rate=vehicle.max_steering_rate, steering_scale=vehicle.steering_scale)
-
-    def __post_init__(self) -> None:
-        for name in ("velocity_frame", "heading_frame"):
-            if getattr(self, name) not in FRAMES:
-                raise ValueError(f"frames.{name.split('_')[0]} must be enu or ned, got {getattr(self, name)!r}")
 
 
 @dataclass
@@ -229,7 +178,8 @@ class EpochAssembler:
         self._guard.accept("steering", stamp)
         self._last_steering_stamp = stamp
         self._last_steering_angle = angle
-        self._steering.append((stamp, self.settings.steering_scale * angle))
+        self._steering.append((stamp, single_track_angle(self.settings.steering_scale * angle,
+                                                         self.settings.ackermann)))
         while len(self._steering) > 2 and self._steering[0][0] < stamp - self.settings.steering_buffer:
             self._steering.popleft()
         return self._flush()

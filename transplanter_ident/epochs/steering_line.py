@@ -1,14 +1,19 @@
-"""The steering input over one GNSS interval: its least-squares line (mean and slope).
+"""The steering input over one GNSS interval: its least-squares line (mean and slope); one wheel's angle as the single-track one.
 
 The steering stream is faster than GNSS; joined by straight lines between its samples, its
 mean and least-squares slope over [t_{k-1}, t_k] are what the exact model integrates as a ramp
 (DESIGN.md section 1, input timing). :func:`interval_line_kernel` is the same computation,
 compiled, for the batch assembler (epochs/batch.py).
+
+:func:`single_track_angle`: the bicycle model (paper eq. 4) has one front wheel on the centre line;
+a sensor on the left or right wheel reads that wheel's angle, and with Ackermann geometry (the
+wheels' axes meet on the rear axle's line) cot delta = cot delta_wheel + k, k = +-track / (2 wheelbase).
 """
 
 from __future__ import annotations
 
 import bisect
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -78,3 +83,15 @@ def _interpolate_kernel(times, values, t):  # noqa: ANN001, ANN201
         return values[-1]
     t0, t1 = times[i - 1], times[i]
     return values[i - 1] + (values[i] - values[i - 1]) * (t - t0) / (t1 - t0)
+
+
+def ackermann_ratio(wheel: str, track: float, wheelbase: float) -> float:
+    """K of :func:`single_track_angle` for a sensor on the ``wheel`` (center, left or right) front wheel."""
+    return {"center": 0.0, "left": 1.0, "right": -1.0}[wheel] * track / (2.0 * wheelbase)
+
+
+def single_track_angle(wheel_angle: float, ratio: float) -> float:
+    """The single-track steering angle from one front wheel's (rad, + left): cot delta = cot wheel + ``ratio``."""
+    if ratio == 0.0:
+        return wheel_angle
+    return math.atan2(math.sin(wheel_angle), math.cos(wheel_angle) + ratio * math.sin(wheel_angle))

@@ -1,0 +1,68 @@
+"""How samples become epochs: the assembler's settings, from the parameters (node and bags alike).
+
+Frames, lever arm, GNSS timing, the steering sensor (``vehicle.steering_scale``, and the wheel it sits
+on: :func:`.steering_line.single_track_angle`) and the vehicle's physical limits; the assembler
+(:mod:`.assembler`) and its batch twin (:mod:`.batch`) read the same :class:`AssemblerSettings`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from transplanter_ident.config.params_file import EstimatorParams
+from transplanter_ident.config.schema import FRAMES
+from transplanter_ident.epochs.steering_line import ackermann_ratio
+
+
+@dataclass(frozen=True)
+class AssemblerSettings:
+    """How samples become epochs (the limits default to none; :meth:`from_params` takes the vehicle's)."""
+
+    velocity_frame: str = "enu"
+    heading_frame: str = "enu"
+    antenna_x: float = 0.0
+    antenna_y: float = 0.0
+    max_steering: float = 0.7
+    match_tolerance: float = 0.02  # s between velocity and heading stamps of one epoch
+    steering_timeout: float = 0.5  # s: a newer steering sample must exist within this of t_k
+    steering_wait: float = 0.25  # s: an uncovered epoch goes once a GNSS epoch more than this later is matched
+    gnss_delay: float = 0.0  # s: GNSS stamped t describes the motion at t - gnss_delay
+    steering_buffer: float = 10.0  # s of steering history kept (bounded memory without GNSS)
+    heading_offset: float = 0.0  # rad: yaw of the heading source relative to the vehicle x axis (subtracted)
+    body_velocity_rotation: float = 0.0  # rad: yaw of a body-frame velocity's axes relative to the vehicle x axis
+    max_stamp_jump: float = 1.0  # s: a stamp further from the others is an outlier
+    max_speed: float = math.inf  # m/s: |GNSS ground speed| limit
+    max_lateral_speed: float = math.inf  # m/s: |vy| at the CG
+    max_yaw_rate: float = math.inf  # rad/s: |interval-mean yaw rate|
+    max_steering_rate: float = math.inf  # rad/s: |change from the last steering sample| / dt
+    steering_scale: float = 1.0  # wheel angle per sensor angle; the limits above apply to the sensor's reading
+    ackermann: float = 0.0  # steering_line.single_track_angle's ratio (0: the sensor gives the single-track angle)
+
+    @classmethod
+    def from_params(cls, params: EstimatorParams) -> AssemblerSettings:
+        """Frames, lever arm, limits, GNSS timing and steering sensor from the parameters (node and bags alike).
+
+        A nav_msgs/Odometry serving velocity and heading on one topic reports its twist in the frame whose
+        yaw it reports, so ``vehicle.heading_offset`` turns that twist too.
+        """
+        vehicle = params.config.vehicle
+        ackermann = ackermann_ratio(vehicle.steering_sensor_wheel, vehicle.track_width, vehicle.lf + vehicle.lr)
+        extra = params.extra
+        one_odometry = (params.topics.velocity == params.topics.heading
+                        and str(extra.get("topics.velocity_type", "")).endswith("Odometry")
+                        and str(extra.get("topics.heading_type", "")).endswith("Odometry"))
+        return cls(velocity_frame=params.frames.velocity, heading_frame=params.frames.heading,
+                   antenna_x=vehicle.antenna_x, antenna_y=vehicle.antenna_y, max_steering=vehicle.max_steering,
+                   match_tolerance=params.gnss.pairing_tolerance, gnss_delay=params.gnss.delay,
+                   steering_wait=params.steering.max_wait, heading_offset=vehicle.heading_offset,
+                   body_velocity_rotation=vehicle.heading_offset if one_odometry else 0.0,
+                   max_stamp_jump=params.gnss.max_stamp_jump, max_speed=vehicle.max_speed,
+                   max_lateral_speed=vehicle.max_lateral_speed, max_yaw_rate=vehicle.max_yaw_rate,
+                   max_steering_rate=vehicle.max_steering_rate, steering_scale=vehicle.steering_scale,
+                   ackermann=ackermann)
+
+    def __post_init__(self) -> None:
+        for name in ("velocity_frame", "heading_frame"):
+            if getattr(self, name) not in FRAMES:
+                raise ValueError(f"frames.{name.split('_')[0]} must be enu or ned, got {getattr(self, name)!r}")
