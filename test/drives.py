@@ -8,12 +8,13 @@ truth, and the time to get back within a tolerance after a change.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
 
 import numpy as np
 from helpers import epochs_from_result, sim_samples
 
-from transplanter_ident.config.parameters import EstimatorConfig
+from transplanter_ident.config.parameters import EstimatorConfig, ValiditySettings
 from transplanter_ident.ekf.joint_ekf import run_sequence
 from transplanter_ident.ekf.layout import (
     O_CF,
@@ -28,6 +29,7 @@ from transplanter_ident.ekf.layout import (
 )
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
 from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.evaluation.validity import decide_sequence
 from transplanter_ident.sim.signals import StiffnessSchedule, sine_steering
 from transplanter_ident.sim.simulator import SensorNoise, SimConfig, SimResult, simulate
 
@@ -138,3 +140,32 @@ def pooled_coverage(runs: list[Run], start: float) -> tuple[float, float]:
     front = np.concatenate([r.covered()[0][r.t >= start] for r in runs])
     rear = np.concatenate([r.covered()[1][r.t >= start] for r in runs])
     return float(np.mean(front)), float(np.mean(rear))
+
+
+@dataclass(frozen=True)
+class ValidityFigures:
+    """What a set of drives says about trust: availability, the worst output, and accuracy."""
+
+    valid: float  # mean share of the epochs from the start time on flagged valid
+    missed: float  # share of those valid epochs whose +-2 sigma misses Cf or Cr (0 when none is valid)
+    finals: tuple[float, ...]  # |final relative error| of Cf and Cr of every drive
+
+    @property
+    def median(self) -> float:
+        return float(np.median(self.finals))
+
+
+def validity_figures(results: Iterable[SimResult], config: EstimatorConfig,
+                     epochs_for: Callable[[SimResult], EpochArrays], start: float = 30.0) -> ValidityFigures:
+    """Filter each drive with ``config`` and decide its validity on ``epochs_for(result)``, from ``start`` s on."""
+    shares, missed, finals = [], [], []
+    for result in results:
+        run = run_drive(result, config)
+        valid = decide_sequence(config, ValiditySettings(), epochs_for(result), run.outputs)
+        after = run.t >= start
+        kept = valid & after
+        front, rear = run.covered()
+        shares.append(float(np.mean(kept[after])))
+        missed.extend((~(front & rear))[kept].tolist())
+        finals.extend(abs(e) for e in run.final_errors())
+    return ValidityFigures(float(np.mean(shares)), float(np.mean(missed)) if missed else 0.0, tuple(finals))

@@ -13,12 +13,11 @@ import math
 
 import numpy as np
 import pytest
-from drives import run_drive
+from drives import validity_figures
 from independent_sim import independent_drive, magic_formula
 from test_validity import epochs_of
 
-from transplanter_ident.config.parameters import EstimatorConfig, ValiditySettings
-from transplanter_ident.evaluation.validity import decide_sequence
+from transplanter_ident.config.parameters import EstimatorConfig
 from transplanter_ident.sim.signals import sine_steering
 from transplanter_ident.sim.simulator import SensorNoise, SimConfig, simulate
 
@@ -47,17 +46,7 @@ def test_both_simulators_agree_where_the_tire_is_linear() -> None:
 
 @pytest.mark.parametrize("friction", [0.8, 0.3])
 def test_the_estimate_is_right_or_not_valid_on_the_independent_drives(friction: float) -> None:
-    valid_shares, missed, finals = [], [], []
-    for seed in SEEDS:
-        result, config = independent_drive(seed, friction=friction), EstimatorConfig()
-        run = run_drive(result, config)
-        valid = decide_sequence(config, ValiditySettings(), epochs_of(result), run.outputs)
-        after = run.t >= 30.0
-        kept = valid & after
-        front, rear = run.covered()
-        valid_shares.append(np.mean(kept[after]))
-        missed.extend(~(front & rear)[kept])
-        finals.extend(abs(e) for e in run.final_errors())
-    assert np.mean(valid_shares) >= 0.85, valid_shares
-    assert np.mean(missed) <= 0.05, np.mean(missed)
-    assert np.median(finals) <= 0.03 and max(finals) <= 0.08, finals
+    results = (independent_drive(seed, friction=friction) for seed in SEEDS)
+    figures = validity_figures(results, EstimatorConfig(), epochs_of)
+    assert figures.valid >= 0.85 and figures.missed <= 0.05, figures
+    assert figures.median <= 0.03 and max(figures.finals) <= 0.08, figures

@@ -17,18 +17,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from drives import run_drive, sine_drive
+from drives import ValidityFigures, sine_drive, validity_figures
 from helpers import NO_NOISE, sim_samples
 from independent_sim import independent_drive
 from test_validity import epochs_of
 
 from transplanter_ident.bags import read_bag, write_sim_bag
-from transplanter_ident.config.parameters import EstimatorConfig, ValiditySettings, VehicleParams
+from transplanter_ident.config.parameters import EstimatorConfig, VehicleParams
 from transplanter_ident.config.params_file import load_params
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
 from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.epochs.steering_line import ackermann_ratio, single_track_angle
-from transplanter_ident.evaluation.validity import decide_sequence
 from transplanter_ident.sim.simulator import simulate
 
 SENSOR_SCALE = 1.01  # the sensor reads the wheel angle x this
@@ -60,21 +59,11 @@ def test_a_bag_replayed_with_the_parameter_gets_the_scaled_steering(tmp_path: Pa
     np.testing.assert_allclose(scaled.epochs.steering, 0.5 * plain.epochs.steering, rtol=1e-12, atol=1e-15)
 
 
-def _drive_figures(steering_scale: float) -> tuple[float, float, float]:
-    """(valid share, share of valid epochs outside +-2 sigma, median final |error|) over the seeds, from 30 s on."""
+def _drive_figures(steering_scale: float) -> ValidityFigures:
+    """The seeds' drives with the sensor 1 % high, filtered with ``vehicle.steering_scale``, from 30 s on."""
     config = EstimatorConfig(vehicle=VehicleParams(steering_scale=steering_scale))
-    valid_shares, missed, finals = [], [], []
-    for seed in SEEDS:
-        result = simulate(sine_drive(seed, steering_scale=SENSOR_SCALE))
-        epochs = epochs_of(result, steering_scale=steering_scale)
-        run = run_drive(result, config)
-        valid = decide_sequence(config, ValiditySettings(), epochs, run.outputs)
-        after = run.t >= 30.0
-        front, rear = run.covered()
-        valid_shares.append(np.mean((valid & after)[after]))
-        missed.extend(~(front & rear)[valid & after])
-        finals.extend(abs(e) for e in run.final_errors())
-    return float(np.mean(valid_shares)), float(np.mean(missed)) if missed else 0.0, float(np.median(finals))
+    results = (simulate(sine_drive(seed, steering_scale=SENSOR_SCALE)) for seed in SEEDS)
+    return validity_figures(results, config, lambda result: epochs_of(result, steering_scale=steering_scale))
 
 
 def test_with_the_scale_configured_the_estimate_is_right_and_without_it_confidently_wrong() -> None:
@@ -82,10 +71,10 @@ def test_with_the_scale_configured_the_estimate_is_right_and_without_it_confiden
 
     Unconfigured, >= 50 % of the valid epochs are outside +-2 sigma (the test's teeth; measured 61 %).
     """
-    valid, missed, median = _drive_figures(1.0 / SENSOR_SCALE)
-    assert valid >= 0.85 and missed <= 0.05 and median <= 0.03, (valid, missed, median)
-    _, missed_unconfigured, _ = _drive_figures(1.0)
-    assert missed_unconfigured >= 0.5, missed_unconfigured
+    configured = _drive_figures(1.0 / SENSOR_SCALE)
+    assert configured.valid >= 0.85 and configured.missed <= 0.05 and configured.median <= 0.03, configured
+    unconfigured = _drive_figures(1.0)
+    assert unconfigured.missed >= 0.5, unconfigured
 
 
 # --------------------------------------------------------------------------- a sensor on one wheel (Ackermann)
@@ -118,27 +107,15 @@ def test_a_sensor_on_the_left_wheel_is_right_when_configured_and_never_valid_whe
     outside +-2 sigma, median final |error| <= 3 % (measured 93 %, 0, 1.2 %). Unconfigured: valid in <= 5 % of
     the epochs (measured 0, median final error 11 %; the angle is off by a sign-dependent 13-16 % at 15 deg).
     """
-    told = VehicleParams(steering_sensor_wheel="left", track_width=TRACK)
     figures = {}
-    for vehicle in (told, VehicleParams()):
-        config, shares, missed, finals = EstimatorConfig(vehicle=vehicle), [], [], []
-        for seed in SEEDS:
-            center = independent_drive(seed)
-            result = replace(center, steering=_left_wheel(center.steering))
-            run = run_drive(result, config)
-            epochs = epochs_of(result, steering_scale=1.0, ackermann=ackermann_ratio(vehicle.steering_sensor_wheel,
-                                                                                     vehicle.track_width, WHEELBASE))
-            valid = decide_sequence(config, ValiditySettings(), epochs, run.outputs)
-            after = run.t >= 30.0
-            front, rear = run.covered()
-            shares.append(np.mean((valid & after)[after]))
-            missed.extend(~(front & rear)[valid & after])
-            finals.extend(abs(e) for e in run.final_errors())
-        figures[vehicle.steering_sensor_wheel] = (np.mean(shares), np.mean(missed) if missed else 0.0,
-                                                  np.median(finals))
-    valid, outside, median = figures["left"]
-    assert valid >= 0.85 and outside <= 0.05 and median <= 0.03, figures
-    assert figures["center"][0] <= 0.05, figures
+    for vehicle in (VehicleParams(steering_sensor_wheel="left", track_width=TRACK), VehicleParams()):
+        results = (replace(c, steering=_left_wheel(c.steering)) for c in map(independent_drive, SEEDS))
+        ratio = ackermann_ratio(vehicle.steering_sensor_wheel, vehicle.track_width, WHEELBASE)
+        figures[vehicle.steering_sensor_wheel] = validity_figures(
+            results, EstimatorConfig(vehicle=vehicle), lambda result, k=ratio: epochs_of(result, ackermann=k))
+    left = figures["left"]
+    assert left.valid >= 0.85 and left.missed <= 0.05 and left.median <= 0.03, figures
+    assert figures["center"].valid <= 0.05, figures
 
 
 def test_the_wheel_parameters_reach_both_assemblers(tmp_path: Path) -> None:
