@@ -12,7 +12,7 @@ from transplanter_ident.config.paper import PAPER_NOISE, PAPER_OPTIONS
 from transplanter_ident.config.parameters import EstimatorConfig, VehicleParams
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
-from transplanter_ident.epochs.steering_line import ackermann_ratio
+from transplanter_ident.epochs.settings import steering_sensor
 from transplanter_ident.sim.simulator import SensorNoise, SimConfig, SimResult, simulate
 
 Sample = tuple[str, float, tuple[float, ...]]
@@ -44,9 +44,8 @@ def sim_samples(result: SimResult, *, gnss_first: bool = False) -> list[Sample]:
 
 def assembler_settings(vehicle: VehicleParams, **overrides: object) -> AssemblerSettings:
     """AssemblerSettings with the vehicle's lever arm, steering limit and steering sensor (scale, wheel)."""
-    ackermann = ackermann_ratio(vehicle.steering_sensor_wheel, vehicle.track_width, vehicle.lf + vehicle.lr)
     values = {"antenna_x": vehicle.antenna_x, "antenna_y": vehicle.antenna_y, "max_steering": vehicle.max_steering,
-              "steering_scale": vehicle.steering_scale, "ackermann": ackermann}
+              **steering_sensor(vehicle)}
     values.update(overrides)
     return AssemblerSettings(**values)
 

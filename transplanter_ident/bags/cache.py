@@ -97,7 +97,7 @@ class DecodedBag:
 
 
 def _columns(epochs: EpochArrays) -> np.ndarray:
-    return np.column_stack([getattr(epochs, name) for name in Epoch.__dataclass_fields__]).astype(np.float64)
+    return epochs.rows()
 
 
 def _read(path: Path, key: str) -> tuple[np.ndarray, Truth | None] | None:

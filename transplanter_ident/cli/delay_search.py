@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from transplanter_ident.cli.util import CliError
 from transplanter_ident.config.params_file import EstimatorParams
 from transplanter_ident.tuning.delay import (
     DELAY_RANGE,
@@ -81,10 +82,19 @@ def estimate_bag_delay(bags: Sequence[str], params: EstimatorParams, backend: Ba
 def estimate_bag_steering_scale(decoded: Sequence[Any], params: EstimatorParams, backend: Backend, *,
                                 objective: str, tune_stiffness_noise: bool = False, cache: Path | None = None,
                                 stream: Any = None) -> tuple[ScaleEstimate, EstimatorParams, list[Any]]:
-    """Search the scale on the decoded bags; return it, the parameters with it, and the bags' epochs at it."""
+    """Search the scale on the decoded bags; return it, the parameters with it, and the bags' epochs at it.
+
+    Only for a sensor on the centre line: one wheel's angle goes through the nonlinear Ackermann map,
+    so scaling the epochs (:func:`~transplanter_ident.tuning.steering_scale.scaled_epochs`) would not
+    be assembling with that scale.
+    """
     from transplanter_ident.bags.cache import store_bag_epochs  # rosbags only where bags are read
 
-    configured = params.config.vehicle.steering_scale
+    vehicle = params.config.vehicle
+    if vehicle.steering_sensor_wheel != "center":
+        raise CliError(f"--estimate-steering-scale needs vehicle.steering_sensor_wheel: center, got "
+                       f"{vehicle.steering_sensor_wheel!r} (calibrate a sensor on one wheel against that wheel)")
+    configured = vehicle.steering_scale
     epochs = [item.epochs for item in decoded]
     estimate = search_steering_scale(pooled_scale_objective(epochs, params.config, objective, tune_stiffness_noise,
                                                             backend.map), configured)

@@ -10,23 +10,25 @@ Here, for each GNSS epoch t_k (velocity and heading paired by stamp, :mod:`.pair
   the antenna (a nav_msgs/Odometry twist, :meth:`EpochAssembler.add_body_velocity`, turned by
   ``body_velocity_rotation`` when its child frame is the heading source's);
 * yaw rate: the interval mean over [t_{k-1}, t_k] from heading increments (never a derivative);
-* timing: a GNSS sample stamped t describes the motion at t - ``gnss_delay`` (drivers that stamp on
-  arrival); the epoch time and the steering interval use that time;
-* lever arm: the filter measures the antenna's lateral velocity (h(x) = vy + ax r); the CG values
-  vy_cg = vy - r ax (display) and vx_cg = vx + r ay (the speed input) use the interval r;
-* inputs: vx averaged over [t_{k-1}, t_k]; the steering angle (the sensor's x ``steering_scale``, made
-  the single-track angle for a sensor on one wheel, :func:`.steering_line.single_track_angle`) over the
-  interval as its least-squares line (mean, DESIGN.md's input, and slope) through the faster stream,
-  linear between samples: the exact model follows the ramp, which matters as at 2 m/s the lateral
-  dynamics (~40 ms) are much faster than a 5 Hz GNSS interval.
+* timing: a GNSS sample stamped t describes the motion at t - ``gnss_delay`` (drivers that
+  stamp on arrival); the epoch time and the steering interval use that time;
+* lever arm: the filter measures the antenna's lateral velocity (h(x) = vy + ax r); the CG
+  values vy_cg = vy - r ax (display) and vx_cg = vx + r ay (the speed input) use the interval r;
+* inputs: vx averaged over [t_{k-1}, t_k], and the steering angle over the interval as its
+  least-squares line (mean and slope) through the faster steering stream, interpolated
+  linearly between its samples. The interval mean is DESIGN.md's input; the slope lets the
+  exact model follow a ramp, which matters because at 2 m/s the lateral dynamics (time
+  constant ~40 ms) are much faster than a 5 Hz GNSS interval. Each steering sample is first
+  made the single-track angle (:meth:`.settings.AssemblerSettings.wheel_angle`: the sensor's
+  scale, and the Ackermann map for a sensor on one wheel).
 
-Bad input (DESIGN.md section 6, issue #14) is rejected with a reason and a kind (:mod:`.checks`): non-finite
-values, invalid markers, quaternions that are no orientation, stamps out of order, a stamp far from the
-others (:mod:`.stamps`: an outlier, never the new reference; a lasting time step re-synchronises by itself),
-and the vehicle's physical limits: |speed|, a steering spike (faster than max_steering_rate; a second in a
-row is a real jump), then per epoch |yaw rate| and |lateral speed| at the CG. An epoch beyond a limit is
-dropped and does not become the next epoch's start, so one bad heading costs one epoch, not two; two in a
-row re-anchor.
+Bad input (DESIGN.md section 6, issue #14) is rejected with a reason and a kind (:mod:`.checks`):
+non-finite values, invalid markers, quaternions that are no orientation, stamps out of order, a
+stamp far from the others (:mod:`.stamps`: an outlier, never the new reference; a lasting time
+step re-synchronises by itself), and the vehicle's physical limits: |speed|, a steering spike
+(faster than max_steering_rate; a second in a row is a real jump), then per epoch |yaw rate| and
+|lateral speed| at the CG. An epoch beyond a limit is dropped and does not become the
+next epoch's start, so one bad heading costs one epoch, not two; two in a row re-anchor.
 
 An epoch is formed only once the steering stream covers its interval (a steering sample at or after t_k), or
 at the latest when a GNSS epoch more than ``steering.max_wait`` later is matched (then it is counted as
@@ -57,13 +59,14 @@ from transplanter_ident.epochs.frames import (
 from transplanter_ident.epochs.pairing import GnssPairer, PairingStats, Unpaired
 from transplanter_ident.epochs.settings import AssemblerSettings
 from transplanter_ident.epochs.stamps import StampGuard, Verdict
-from transplanter_ident.epochs.steering_line import interval_line, single_track_angle
+from transplanter_ident.epochs.steering_line import interval_line
 
 #: s: stamps closer than this count as the same instant (clocks written as float seconds)
 STAMP_EPSILON = 1.0e-6
 #: consecutive epochs beyond a physical limit after which the latest sample becomes the new start
 REANCHOR_AFTER = 2
-MAX_STEERING_SAMPLES = 20_000  #: steering samples kept at most, at any rate (also trimmed by time): 10 s at 2 kHz
+#: the most steering samples kept, whatever their rate (the buffer is also trimmed by time): 10 s at 2 kHz
+MAX_STEERING_SAMPLES = 20_000
 
 
 @dataclass
@@ -178,8 +181,7 @@ class EpochAssembler:
         self._guard.accept("steering", stamp)
         self._last_steering_stamp = stamp
         self._last_steering_angle = angle
-        self._steering.append((stamp, single_track_angle(self.settings.steering_scale * angle,
-                                                         self.settings.ackermann)))
+        self._steering.append((stamp, self.settings.wheel_angle(angle)))
         while len(self._steering) > 2 and self._steering[0][0] < stamp - self.settings.steering_buffer:
             self._steering.popleft()
         return self._flush()

@@ -42,7 +42,7 @@ from transplanter_ident.epochs.early_rejections import KINDS, early_rejections, 
 from transplanter_ident.epochs.epoch import EpochArrays, Rejection
 from transplanter_ident.epochs.frames import wrap_angle
 from transplanter_ident.epochs.pairing import PairingStats
-from transplanter_ident.epochs.steering_line import interval_line_kernel, single_track_angle
+from transplanter_ident.epochs.steering_line import interval_line_kernel
 from transplanter_ident.jit import entry_kernel
 
 #: the value columns of a merged sample, and the widths each input comes in (fewer: the add_* defaults)
@@ -108,9 +108,7 @@ def assemble_batch(settings: AssemblerSettings, streams: Sequence[SampleStream],
         return None
     steer = np.flatnonzero(kind == KINDS["steering"])
     source_at = np.searchsorted(keys, np.asarray(source_keys, dtype=np.int64), side="left")
-    wheel = settings.steering_scale * values[steer, 0]
-    if settings.ackermann != 0.0:  # as the streaming assembler: one sample at a time
-        wheel = np.array([single_track_angle(w, settings.ackermann) for w in wheel.tolist()])
+    wheel = settings.wheel_angles(values[steer, 0])  # the streaming assembler's conversion, sample by sample
     return _run(settings, pairs, steer, stamp[steer], wheel, position, early, source_at)
 
 

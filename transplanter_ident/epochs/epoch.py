@@ -52,6 +52,10 @@ class EpochArrays:
             setattr(arrays, f.name, arrays._data[:, i])
         return arrays
 
+    def rows(self) -> np.ndarray:
+        """A copy of the n x (number of Epoch fields) array, columns in the field order (:meth:`from_rows`)."""
+        return self._data.copy()
+
     def __len__(self) -> int:
         return self._data.shape[0]
 

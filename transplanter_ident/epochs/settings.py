@@ -10,9 +10,18 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
+from transplanter_ident.config.parameters import VehicleParams
 from transplanter_ident.config.params_file import EstimatorParams
 from transplanter_ident.config.schema import FRAMES
-from transplanter_ident.epochs.steering_line import ackermann_ratio
+from transplanter_ident.epochs.steering_line import ackermann_ratio, single_track_angle
+
+
+def steering_sensor(vehicle: VehicleParams) -> dict[str, float]:
+    """The assembler's ``steering_scale`` and ``ackermann`` for the vehicle's steering sensor."""
+    ratio = ackermann_ratio(vehicle.steering_sensor_wheel, vehicle.track_width, vehicle.lf + vehicle.lr)
+    return {"steering_scale": vehicle.steering_scale, "ackermann": ratio}
 
 
 @dataclass(frozen=True)
@@ -47,7 +56,6 @@ class AssemblerSettings:
         yaw it reports, so ``vehicle.heading_offset`` turns that twist too.
         """
         vehicle = params.config.vehicle
-        ackermann = ackermann_ratio(vehicle.steering_sensor_wheel, vehicle.track_width, vehicle.lf + vehicle.lr)
         extra = params.extra
         one_odometry = (params.topics.velocity == params.topics.heading
                         and str(extra.get("topics.velocity_type", "")).endswith("Odometry")
@@ -59,10 +67,20 @@ class AssemblerSettings:
                    body_velocity_rotation=vehicle.heading_offset if one_odometry else 0.0,
                    max_stamp_jump=params.gnss.max_stamp_jump, max_speed=vehicle.max_speed,
                    max_lateral_speed=vehicle.max_lateral_speed, max_yaw_rate=vehicle.max_yaw_rate,
-                   max_steering_rate=vehicle.max_steering_rate, steering_scale=vehicle.steering_scale,
-                   ackermann=ackermann)
+                   max_steering_rate=vehicle.max_steering_rate, **steering_sensor(vehicle))
 
     def __post_init__(self) -> None:
         for name in ("velocity_frame", "heading_frame"):
             if getattr(self, name) not in FRAMES:
                 raise ValueError(f"frames.{name.split('_')[0]} must be enu or ned, got {getattr(self, name)!r}")
+
+    def wheel_angle(self, sensor: float) -> float:
+        """The single-track steering angle of one steering-sensor reading (scale, then the wheel's Ackermann map)."""
+        return single_track_angle(self.steering_scale * sensor, self.ackermann)
+
+    def wheel_angles(self, sensor: np.ndarray) -> np.ndarray:
+        """:meth:`wheel_angle` of every reading, the same floating-point operations (the batch assembler)."""
+        scaled = self.steering_scale * np.asarray(sensor, dtype=np.float64)
+        if self.ackermann == 0.0:
+            return scaled
+        return np.array([single_track_angle(angle, self.ackermann) for angle in scaled.tolist()])

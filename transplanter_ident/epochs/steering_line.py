@@ -1,4 +1,4 @@
-"""The steering input over one GNSS interval: its least-squares line (mean and slope); one wheel's angle as the single-track one.
+"""The steering input: its least-squares line over one GNSS interval, and a wheel's angle as the single-track one.
 
 The steering stream is faster than GNSS; joined by straight lines between its samples, its
 mean and least-squares slope over [t_{k-1}, t_k] are what the exact model integrates as a ramp

@@ -8,7 +8,9 @@ constant best found from recorded drives: a one-dimensional search, ahead of the
 the tuner's objective (eq. 21's mean |innovation| or the innovation NLL, :mod:`.problem`) at the
 *starting* Q/R, pooled over the bags with their epoch counts as weights. A candidate factor
 multiplies every epoch's steering angle and its rate (:func:`scaled_epochs`; the assembler's
-lines are linear in the samples, so this equals assembling with that scale), and the filter
+lines are linear in the samples, so this equals assembling with that scale: for a sensor on the
+centre line only, as a sensor on one wheel goes through the nonlinear Ackermann map, so the CLI
+refuses that case), and the filter
 starts from the stiffness and offset a first pass at that factor ends with (:func:`.delay.warm_start`).
 
 Over [0.95, 1.05] x the configured scale, in 0.5 % then 0.05 % steps (:func:`.delay.grid_search`).
@@ -21,8 +23,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields, replace
-
-import numpy as np
 
 from transplanter_ident.config.parameters import EstimatorConfig
 from transplanter_ident.config.params_file import EstimatorParams
@@ -41,7 +41,7 @@ TaskMap = Callable[[Callable[..., tuple[float, int]], list[tuple]], list[tuple[f
 
 def scaled_epochs(epochs: EpochArrays, factor: float) -> EpochArrays:
     """``epochs`` with every steering angle and steering rate multiplied by ``factor``."""
-    rows = np.column_stack([epochs.column(name) for name in _NAMES]).astype(np.float64)
+    rows = epochs.rows()
     rows[:, [_NAMES.index("steering"), _NAMES.index("steering_rate")]] *= factor
     return EpochArrays.from_rows(rows)
 
