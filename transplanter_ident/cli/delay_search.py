@@ -7,7 +7,10 @@ Each bag is decoded once into its input samples (:func:`transplanter_ident.bags.
 re-assembling every bag's epochs with it and running the filter at the starting Q/R (the
 (bag, delay) pairs of a grid run in parallel on the tuner's local backend). The bags' epochs at
 the estimated delay are what the Q/R search uses, and they go into the epoch cache under the
-parameters with that delay, so a later ``tuner --params-file OUT.yaml`` run skips decoding.
+parameters with that delay, so a later ``tuner --params-file OUT.yaml`` run skips decoding. With
+the objective ``nll`` the estimate has a std (:func:`transplanter_ident.tuning.delay.profile_std`
+over all the bags' epochs), which goes into ``ekf.delay_uncertainty`` (:meth:`DelayRun.calibration`):
+the timing error it may leave is then in the reported Cf, Cr std.
 
 ``--estimate-steering-scale`` then finds ``vehicle.steering_scale`` on those epochs
 (:mod:`transplanter_ident.tuning.steering_scale`; the (bag, scale) pairs of a grid in parallel) and
@@ -16,6 +19,7 @@ hands on the epochs at the estimated scale, cached under the parameters with it.
 
 from __future__ import annotations
 
+import math
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -29,8 +33,7 @@ from transplanter_ident.tuning.delay import (
     DelayEstimate,
     assemble_epochs,
     delay_objective,
-    pooled,
-    search_delay,
+    estimate_delay,
     with_delay,
 )
 from transplanter_ident.tuning.parallel import Backend
@@ -51,6 +54,23 @@ class DelayRun:
     params: EstimatorParams
     decoded: list[Any]
 
+    def calibration(self, objective: str) -> dict[str, tuple[float, str]]:
+        """The keys to write (key -> (value, the line that says where it comes from)).
+
+        ``gnss.delay``, and ``ekf.delay_uncertainty`` when the estimate has a std: that std combined
+        with the configured uncertainty (a latency's spread, say), capped at the schema's 1 s (a delay
+        the objective does not pin: the std then holds a bias no band would narrow).
+        """
+        keys = {"gnss.delay": (self.estimate.delay, self.estimate.format(objective))}
+        std = self.estimate.std
+        if not math.isnan(std):
+            configured = self.params.config.options.delay_uncertainty
+            value = min(math.hypot(std, configured), 1.0)
+            keys["ekf.delay_uncertainty"] = (value, f"ekf.delay_uncertainty: {1e3 * value:.1f} ms (the estimated "
+                                             f"gnss.delay's std {1e3 * std:.1f} ms with the configured "
+                                             f"{1e3 * configured:.1f} ms; the Cf, Cr std hold the bias it may leave)")
+        return keys
+
 
 def estimate_bag_delay(bags: Sequence[str], params: EstimatorParams, backend: Backend, *, objective: str,
                        tune_stiffness_noise: bool = False, cache: Path | None = None, allow_partial: bool = False,
@@ -65,13 +85,12 @@ def estimate_bag_delay(bags: Sequence[str], params: EstimatorParams, backend: Ba
         print(f"tuner: {item.bag}: {len(item.samples)} input samples decoded for the delay search"
               f"{f'; note: {item.note}' if item.note else ''}", file=out, flush=True)
 
-    def objective_of(delays: Sequence[float]) -> list[float]:
+    def scores(delays: Sequence[float]) -> list[list[tuple[float, int]]]:
         tasks = [(item.samples, params, d, objective, tune_stiffness_noise) for d in delays for item in inputs]
         values = backend.map(delay_objective, tasks)
-        per_delay = [values[i * len(inputs):(i + 1) * len(inputs)] for i in range(len(delays))]
-        return [pooled(bag_values) for bag_values in per_delay]
+        return [values[i * len(inputs):(i + 1) * len(inputs)] for i in range(len(delays))]
 
-    estimate = search_delay(objective_of, *delay_range)
+    estimate = estimate_delay(scores, objective, *delay_range)
     print(f"tuner: {estimate.format(objective)}", file=out, flush=True)
     chosen = with_delay(params, estimate.delay)
     decoded = [store_bag_epochs(item.bag, chosen, assemble_epochs(item.samples, params, estimate.delay),

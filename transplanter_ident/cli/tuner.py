@@ -146,7 +146,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="go on when fewer messages can be read than the bag's metadata counts (a corrupt chunk)")
     parser.add_argument("--estimate-delay", action="store_true",
                         help="first search gnss.delay (0-0.3 s) on the bags with the same objective at the starting "
-                             "Q/R, then tune Q/R at that delay; writes gnss.delay into OUT.yaml")
+                             "Q/R, then tune Q/R at that delay; writes gnss.delay (and, with nll, its std as "
+                             "ekf.delay_uncertainty) into OUT.yaml")
     parser.add_argument("--estimate-steering-scale", action="store_true", help="then search vehicle.steering_scale "
                         "(0.95-1.05 x the configured) likewise, tune Q/R at it; writes it into OUT.yaml")
     parser.add_argument("--tune-stiffness-noise", action="store_true",
@@ -277,7 +278,7 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
                                    tune_stiffness_noise=args.tune_stiffness_noise, cache=cache_dir(args),
                                    allow_partial=args.allow_partial)
         params, decoded = found.params, found.decoded
-        estimated["gnss.delay"] = (found.estimate.delay, found.estimate.format(args.objective))
+        estimated.update(found.calibration(args.objective))
         report_decoded(decoded, cache_dir(args), sys.stderr)
     else:
         decoded = load_bags(args.bags, params, local, cache_dir(args), allow_partial=args.allow_partial)

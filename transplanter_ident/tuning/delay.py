@@ -15,6 +15,11 @@ true delay. :func:`search_delay`: a coarse grid over [low, high] (default 0-0.3 
 steps), then a fine grid (2 ms) within one coarse step either side of the coarse minimum; the
 best point wins (ties: the smaller delay). Every grid's points are independent, so the caller
 evaluates them in parallel.
+
+The estimate's std (:func:`profile_std`, objective ``nll`` only) comes from the curvature of the
+total NLL around the minimum: the objective is a profile likelihood (the filter re-estimates the
+stiffness at every delay), so the delay's confounding with the stiffness is in it. It is what
+``tuner`` writes as ``ekf.delay_uncertainty``: at 2 m/s every millisecond left moves Cf, Cr ~2 %.
 """
 
 from __future__ import annotations
@@ -37,6 +42,8 @@ from transplanter_ident.tuning.problem import TuningProblem
 DELAY_RANGE = (0.0, 0.3)
 COARSE_STEP = 0.02  # s
 FINE_STEP = 0.002  # s
+#: s: the fine points either side of the minimum through which :func:`profile_std` fits its parabola
+CURVATURE_WINDOW = 0.010
 #: fewer epochs than this at a delay: that delay scores +inf
 MIN_DELAY_EPOCHS = 10
 #: rad: the range of ``vehicle.steering_offset`` (config/schema.py)
@@ -45,6 +52,8 @@ MAX_OFFSET = 0.3
 Sample = tuple[str, float, tuple[float, ...]]
 #: objective of each delay of a batch (s) -> values (lower is better; non-finite = unusable)
 DelayObjective = Callable[[Sequence[float]], Sequence[float]]
+#: delays of a batch (s) -> for each delay, every bag's (objective, epochs) (:func:`delay_objective`)
+BagScores = Callable[[Sequence[float]], Sequence[Sequence[tuple[float, int]]]]
 
 
 def with_delay(params: EstimatorParams, delay: float) -> EstimatorParams:
@@ -96,13 +105,34 @@ def pooled(per_bag: Sequence[tuple[float, int]]) -> float:
     return total / count if count else math.inf
 
 
+def profile_std(points: Sequence[tuple[float, float]], best: float, epochs: int,
+                window: float = CURVATURE_WINDOW, step: float = FINE_STEP) -> float:
+    """1-sigma (s) of the delay ``best`` found on a grid of ``step``, from the curvature of the NLL there.
+
+    ``points``: (delay, mean NLL per epoch) as the search evaluated them; ``epochs``: how many epochs
+    that mean is over. ``epochs x value`` is -ln L up to a constant, so a least-squares parabola
+    a (d - best)^2 + b (d - best) + c through the finite points within ``window`` of ``best`` gives
+    the observed information 2a: std^2 = 1 / 2a, plus step^2 / 12 for the grid's rounding. +inf for a
+    curvature that is not positive (the data do not pin the delay); NaN with fewer than three points.
+    """
+    near = np.array([(d - best, v) for d, v in points if abs(d - best) <= window + 1e-9 and math.isfinite(v)])
+    if len(near) < 3 or epochs <= 0:
+        return math.nan
+    curvature = float(np.polyfit(near[:, 0], epochs * near[:, 1], 2)[0])
+    return math.sqrt(0.5 / curvature + step**2 / 12.0) if curvature > 0.0 else math.inf
+
+
 @dataclass(frozen=True)
 class DelayEstimate:
-    """The delay with the lowest objective, and every (delay, objective) evaluated, by delay."""
+    """The delay with the lowest objective, every (delay, objective) evaluated (by delay), and its std.
+
+    ``std`` (s): :func:`profile_std`; NaN where it is not known (objective ``mae``), +inf where nothing pins it.
+    """
 
     delay: float
     fitness: float
     points: tuple[tuple[float, float], ...]
+    std: float = math.nan
 
     def value_at(self, delay: float) -> float:
         """The objective evaluated at ``delay`` (NaN if it was not evaluated)."""
@@ -112,8 +142,32 @@ class DelayEstimate:
         """One line: the estimate, its objective, and the objective at 0 s for comparison."""
         at_zero = self.value_at(0.0)
         zero = f"; at 0 ms {at_zero:.6g}" if math.isfinite(at_zero) else ""
-        return (f"gnss.delay: {1e3 * self.delay:.0f} ms ({objective} {self.fitness:.6g} at the starting Q/R{zero}; "
-                f"{len(self.points)} delays evaluated)")
+        spread = f" +- {1e3 * self.std:.1f}" if math.isfinite(self.std) else ""
+        return (f"gnss.delay: {1e3 * self.delay:.0f}{spread} ms ({objective} {self.fitness:.6g} at the starting "
+                f"Q/R{zero}; {len(self.points)} delays evaluated)")
+
+
+def serial_scores(bags: Sequence[Sequence[Sample]], params: EstimatorParams, objective: str,
+                  warm: bool = True) -> BagScores:
+    """:data:`BagScores` of the bags' samples, evaluated one after the other in this process."""
+    return lambda delays: [[delay_objective(samples, params, d, objective, warm=warm) for samples in bags]
+                           for d in delays]
+
+
+def estimate_delay(scores: BagScores, objective: str, low: float = DELAY_RANGE[0],
+                   high: float = DELAY_RANGE[1]) -> DelayEstimate:
+    """:func:`search_delay` on the bags' :func:`pooled` objective; with ``nll`` also its :func:`profile_std`."""
+    epochs: dict[float, int] = {}  # delay -> the bags' epochs at it
+
+    def pooled_objective(delays: Sequence[float]) -> list[float]:
+        per_delay = scores(delays)
+        epochs.update((d, sum(n for _, n in bags)) for d, bags in zip(delays, per_delay, strict=True))
+        return [pooled(bags) for bags in per_delay]
+
+    estimate = search_delay(pooled_objective, low, high)
+    if objective != "nll":  # only a likelihood's curvature is the estimate's information
+        return estimate
+    return replace(estimate, std=profile_std(estimate.points, estimate.delay, epochs[estimate.delay]))
 
 
 def _grid(low: float, high: float, step: float) -> list[float]:
