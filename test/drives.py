@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from helpers import epochs_from_result, sim_samples
 
-from transplanter_ident.config.parameters import EstimatorConfig, ValiditySettings
+from transplanter_ident.config.parameters import EstimatorConfig, ValiditySettings, VehicleParams
 from transplanter_ident.ekf.joint_ekf import run_sequence
 from transplanter_ident.ekf.layout import (
     O_CF,
@@ -30,7 +30,7 @@ from transplanter_ident.ekf.layout import (
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
 from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.evaluation.validity import decide_sequence
-from transplanter_ident.sim.signals import StiffnessSchedule, sine_steering
+from transplanter_ident.sim.signals import StiffnessSchedule, multisine_steering, sine_steering
 from transplanter_ident.sim.simulator import SensorNoise, SimConfig, SimResult, simulate
 
 TRUE_CF, TRUE_CR = 8000.0, 10000.0
@@ -149,6 +149,7 @@ class ValidityFigures:
     valid: float  # mean share of the epochs from the start time on flagged valid
     missed: float  # share of those valid epochs whose +-2 sigma misses Cf or Cr (0 when none is valid)
     finals: tuple[float, ...]  # |final relative error| of Cf and Cr of every drive
+    kept: int = 0  # how many valid epochs ``missed`` is over
 
     @property
     def median(self) -> float:
@@ -158,8 +159,14 @@ class ValidityFigures:
 def validity_figures(results: Iterable[SimResult], config: EstimatorConfig,
                      epochs_for: Callable[[SimResult], EpochArrays], start: float = 30.0) -> ValidityFigures:
     """Filter each drive with ``config`` and decide its validity on ``epochs_for(result)``, from ``start`` s on."""
+    return pooled_validity_figures(((result, config) for result in results), epochs_for, start)
+
+
+def pooled_validity_figures(drives: Iterable[tuple[SimResult, EstimatorConfig]],
+                            epochs_for: Callable[[SimResult], EpochArrays], start: float = 30.0) -> ValidityFigures:
+    """:func:`validity_figures` of drives each filtered with its own configuration."""
     shares, missed, finals = [], [], []
-    for result in results:
+    for result, config in drives:
         run = run_drive(result, config)
         valid = decide_sequence(config, ValiditySettings(), epochs_for(result), run.outputs)
         after = run.t >= start
@@ -168,4 +175,32 @@ def validity_figures(results: Iterable[SimResult], config: EstimatorConfig,
         shares.append(float(np.mean(kept[after])))
         missed.extend((~(front & rear))[kept].tolist())
         finals.extend(abs(e) for e in run.final_errors())
-    return ValidityFigures(float(np.mean(shares)), float(np.mean(missed)) if missed else 0.0, tuple(finals))
+    return ValidityFigures(float(np.mean(shares)), float(np.mean(missed)) if missed else 0.0, tuple(finals),
+                           len(missed))
+
+
+def random_drive(rng: np.random.Generator, seed: int) -> tuple[SimConfig, str]:
+    """A drive with its conditions drawn from ``rng`` (bench/random_drives.py says which), and a line saying what it is."""
+    speed = rng.uniform(1.0, 3.0)
+    if rng.random() < 0.5:
+        amplitude, period = rng.uniform(5.0, 25.0), rng.uniform(3.0, 14.0)
+        steering, steer = sine_steering(math.radians(amplitude), period), f"sine +-{amplitude:.0f} deg/{period:.1f} s"
+    else:
+        amplitude, periods = rng.uniform(5.0, 20.0), tuple(float(p) for p in np.sort(rng.uniform(2.0, 16.0, 4)))
+        steering = multisine_steering(math.radians(amplitude), periods, seed=seed)
+        steer = f"multisine +-{amplitude:.0f} deg"
+    tire, friction = ("linear", 0.8) if rng.random() < 0.4 else ("saturating", rng.uniform(0.3, 0.9))
+    cf = rng.uniform(5000.0, 15000.0)
+    cr = cf * rng.uniform(1.0, 1.6)
+    vehicle = VehicleParams(mass=rng.uniform(600.0, 1200.0), lf=rng.uniform(0.5, 0.9), lr=rng.uniform(0.3, 0.7))
+    rate = float(rng.choice([5.0, 10.0]))
+    noise_factor = rng.uniform(0.5, 1.5)
+    base = SensorNoise()
+    noise = replace(base, velocity=noise_factor * base.velocity, heading=noise_factor * base.heading)
+    offset = rng.uniform(-2.0, 2.0)
+    sim = sine_drive(seed, duration=180.0, speed=speed, steering=steering, tire=tire, friction=friction,
+                     stiffness=StiffnessSchedule(front=(cf,), rear=(cr,)), vehicle=vehicle, gnss_rate=rate,
+                     noise=noise, steering_offset=math.radians(offset))
+    tires = "linear" if tire == "linear" else f"tanh mu {friction:.2f}"
+    return sim, (f"{speed:.1f} m/s, {steer}, {tires}, Cf {cf:.0f} Cr {cr:.0f}, m {vehicle.mass:.0f} lf {vehicle.lf:.2f} "
+                 f"lr {vehicle.lr:.2f}, {rate:.0f} Hz, noise x{noise_factor:.1f}, offset {offset:+.1f} deg")
