@@ -46,6 +46,8 @@ ROWS: dict[str, dict[str, object]] = {
     "1 m/s": {"speed": 1.0},
     "3 m/s": {"speed": 3.0},
     "1 m/s, 10 min": {"speed": 1.0, "duration": 600.0},
+    "1.2 m/s, 180 s": {"speed": 1.2, "duration": 180.0},
+    "1.5 m/s, 180 s": {"speed": 1.5, "duration": 180.0},
     "sine +-5 deg": {"steering": sine_steering(DEG(5.0), 6.0)},
     "sine +-25 deg": {"steering": sine_steering(DEG(25.0), 6.0)},
     "sine period 3 s": {"steering": sine_steering(DEG(15.0), 3.0)},
