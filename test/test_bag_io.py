@@ -88,6 +88,7 @@ def _messages(frame_id: str, rng: np.random.Generator, joint_names: list[str]):
                                                    velocity=positions * 2, effort=empty),
                              (float(positions[joint_names.index("front_steering")]),)),
         bag_io.FLOAT64: (T[bag_io.FLOAT64](data=float(positions[0])), (float(positions[0]),)),
+        bag_io.FLOAT32: (T[bag_io.FLOAT32](data=np.float32(positions[0])), (float(np.float32(positions[0])),)),
     }
 
 
@@ -100,7 +101,7 @@ def test_decode_message_every_type(little_endian: bool) -> None:
         data = bytes(TS.serialize_cdr(msg, msgtype, little_endian=little_endian))
         stamp, values = decode_message(msgtype, data, log_ns, "front_steering")
         assert values == pytest.approx(expected, rel=0, abs=1e-15), msgtype
-        expected_stamp = log_ns / 1e9 if msgtype == bag_io.FLOAT64 else 1_700_000_123_456_789_012 / 1e9
+        expected_stamp = log_ns / 1e9 if msgtype in (bag_io.FLOAT64, bag_io.FLOAT32) else 1_700_000_123_456_789_012 / 1e9
         assert stamp == expected_stamp, msgtype
     odometry, _ = _messages("base_link", np.random.default_rng(1), names)[bag_io.ODOMETRY]
     data = bytes(TS.serialize_cdr(odometry, bag_io.ODOMETRY))
@@ -211,6 +212,18 @@ def test_every_accepted_type_and_frame_gives_the_same_epochs(tmp_path: Path, sim
     np.testing.assert_allclose(got, reference_epochs, rtol=0, atol=1e-9)
 
 
+def test_float32_steering_gives_the_same_epochs_to_its_precision(tmp_path: Path, sim_result, reference_epochs) -> None:
+    """std_msgs/Float32 steering (a CAN bridge's type): the epochs of the Float64 bag within float32 rounding."""
+    bag = tmp_path / "float32"
+    write_sim_bag(sim_result, bag, SimBagOptions(steering_type="float32"))
+    epochs, rejections = read_epochs(bag, EstimatorParams())  # the reader takes the bag's type
+    assert rejections == []
+    got = epoch_matrix(epochs)
+    assert got.shape == reference_epochs.shape
+    np.testing.assert_allclose(got, reference_epochs, rtol=0, atol=1e-6)  # 2^-24 of angles < 1 rad, and rates
+    assert not np.array_equal(got, reference_epochs)  # the rounding is there: the bag does hold float32
+
+
 def test_our_bags_read_with_the_mcap_library(tmp_path: Path, sim_result) -> None:
     bag = tmp_path / "bag"
     write_sim_bag(sim_result, bag, SimBagOptions(compress=True))
@@ -249,15 +262,15 @@ def test_joint_state_without_the_joint_and_out_of_range_steering_are_rejected(tm
 def test_writer_is_atomic(tmp_path: Path) -> None:
     bag = tmp_path / "bag"
     with pytest.raises(RuntimeError), BagWriter(bag) as writer:
-        writer.write_float64("/x", 1, 1.0)
+        writer.write_float("/x", 1, 1.0)
         raise RuntimeError("boom")
     assert list(tmp_path.iterdir()) == []
     with BagWriter(bag) as writer:
-        writer.write_float64("/x", 1, 1.0)
+        writer.write_float("/x", 1, 1.0)
     with pytest.raises(BagError, match="already exists"), BagWriter(bag):
         pass
     with BagWriter(bag, overwrite=True) as writer:
-        writer.write_float64("/y", 1, 2.0)
+        writer.write_float("/y", 1, 2.0)
     with Reader(bag) as reader:
         assert [c.topic for c in reader.connections] == ["/y"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bag"]
@@ -300,7 +313,7 @@ def test_wrong_message_type(tmp_path: Path) -> None:
     with BagWriter(bag) as writer:
         writer.write_vector3("/gnss/vel", 1, (1.0, 2.0, 3.0))
         writer.write_quaternion("/gnss/heading", 1, yaw_quaternion(0.0))
-        writer.write_float64("/steering_angle", 1, 0.0)
+        writer.write_float("/steering_angle", 1, 0.0)
     with pytest.raises(BagError, match="topic /gnss/vel has type geometry_msgs/msg/Vector3Stamped, but the "
                                        "velocity input accepts"):
         read_epochs(bag, EstimatorParams())
@@ -367,7 +380,7 @@ def test_no_epochs_is_an_error(tmp_path: Path) -> None:
         for k in range(5):
             writer.write_twist("/gnss/vel", 10**9 * (k + 1), (1.0, 0.0, 0.0))
             writer.write_quaternion("/gnss/heading", 10**9 * (k + 1) + 5 * 10**8, yaw_quaternion(0.0))
-            writer.write_float64("/steering_angle", 10**9 * (k + 1), 0.0)
+            writer.write_float("/steering_angle", 10**9 * (k + 1), 0.0)
     with pytest.raises(BagError, match="no epoch could be formed from 5 velocity, 5 heading, 5 steering"):
         read_epochs(bag, EstimatorParams())
 

@@ -99,7 +99,7 @@ def specs_to_samples(specs: list[dict[str, Any]], joint: str = "front_steering",
     """The offline view of published messages: bag_io's conversions (stamp ns / 1e9, quaternion yaw).
 
     Orientation quaternions with a non-finite or zero-norm component are dropped, as the node
-    does; std_msgs/Float64 steering takes the last /clock time (the node's ROS time). ``rotate``
+    does; std_msgs/Float64 (Float32: rounded) steering takes the last /clock time (the node's ROS time). ``rotate``
     turns the ENU frame by that angle (velocity and heading), for a twin run.
     """
     samples = []
@@ -111,6 +111,8 @@ def specs_to_samples(specs: list[dict[str, Any]], joint: str = "front_steering",
             clock = bag_io.seconds(f["clock.sec"] * bag_io.NS_PER_S + f["clock.nanosec"])
         elif spec["type"] == "std_msgs/msg/Float64":
             samples.append(("steering", clock, (f["data"],)))
+        elif spec["type"] == "std_msgs/msg/Float32":
+            samples.append(("steering", clock, (float(np.float32(f["data"])),)))
         elif spec["type"] in VELOCITY_FIELDS:
             prefix = VELOCITY_FIELDS[spec["type"]]
             east, north = f[f"{prefix}.x"], f[f"{prefix}.y"]
@@ -634,8 +636,9 @@ def test_a_publisher_of_another_type_is_named_in_diagnostics() -> None:
 # --------------------------------------------------------------------------- other message types, sim time
 
 
-def test_use_sim_time_other_message_types_and_a_looping_bag() -> None:
-    """TwistWithCovarianceStamped, Imu and Float64 steering on a /clock; the clock jumping back restarts.
+@pytest.mark.parametrize("steering_type", ["std_msgs/msg/Float64", "std_msgs/msg/Float32"])
+def test_use_sim_time_other_message_types_and_a_looping_bag(steering_type: str) -> None:
+    """TwistWithCovarianceStamped, Imu and Float64 (or Float32) steering on a /clock; the clock jumping back restarts.
 
     A Float64 has no stamp: the node takes its ROS time, the last /clock. So the drive is published
     in real time with 10 Hz steering, each /clock 2 ms before the steering sample it stamps, the GNSS
@@ -653,7 +656,7 @@ def test_use_sim_time_other_message_types_and_a_looping_bag() -> None:
         ns = round((t0 + t) * 1e9)
         items.append((t, 0, {"topic": "/clock", "type": CLOCK,
                              "fields": {"clock.sec": ns // bag_io.NS_PER_S, "clock.nanosec": ns % bag_io.NS_PER_S}}))
-        items.append((t, 1, {"topic": STEER, "type": "std_msgs/msg/Float64", "fields": {"data": angle}}))
+        items.append((t, 1, {"topic": STEER, "type": steering_type, "fields": {"data": angle}}))
     for t, (east, north), yaw in zip(result.gnss_time.tolist(), result.velocity_enu.tolist(),
                                      result.heading.tolist(), strict=True):
         stamp = stamp_fields(t0 + t)
@@ -670,10 +673,10 @@ def test_use_sim_time_other_message_types_and_a_looping_bag() -> None:
     result = run_scenario({
         "estimator_args": ["--params-file", str(CONFIG), "-p", "use_sim_time:=true",
                            "-p", "topics.velocity_type:=TwistWithCovarianceStamped", "-p", "topics.heading_type:=Imu",
-                           "-p", "topics.steering_type:=std_msgs/msg/Float64"],
+                           "-p", f"topics.steering_type:={steering_type}"],
         "record": record_spec(),
         "publish_types": [["/clock", CLOCK], [VEL, "geometry_msgs/msg/TwistWithCovarianceStamped"],
-                          [HEAD, "sensor_msgs/msg/Imu"], [STEER, "std_msgs/msg/Float64"]],
+                          [HEAD, "sensor_msgs/msg/Imu"], [STEER, steering_type]],
         "steps": [{"publish": one_pass}, {"wait_for": ["measurement", len(reference), 20.0]},
                   {"publish": one_pass}, {"wait_for": ["measurement", 2 * len(reference), 20.0]},
                   {"spin": 0.3}],

@@ -9,6 +9,7 @@ from transplanter_ident.bags.errors import BagError
 from transplanter_ident.bags.messages import (
     ACCEPTED_TYPES,
     EXTRACTORS,
+    FLOAT32,
     FLOAT64,
     IMU,
     INPUT_TYPES,
@@ -46,7 +47,7 @@ from transplanter_ident.bags.sim_bag import SimBagOptions, reading_parameters, w
 from transplanter_ident.bags.writer import BagWriter, write_output_bag
 
 __all__ = [
-    "ACCEPTED_TYPES", "EXTRACTORS", "FLOAT64", "IMU", "INPUT_TYPES", "JOINT_STATE", "ODOMETRY", "POSE_COV_STAMPED",
+    "ACCEPTED_TYPES", "EXTRACTORS", "FLOAT32", "FLOAT64", "IMU", "INPUT_TYPES", "JOINT_STATE", "ODOMETRY", "POSE_COV_STAMPED",
     "QUATERNION_STAMPED", "TWIST_COV_STAMPED",
     "TWIST_STAMPED", "VECTOR3_STAMPED", "NS_PER_S", "OUTPUT_FRAME_ID", "OUTPUT_NAMESPACE", "ROLES",
     "TRUTH_STIFFNESS_TOPIC", "TRUTH_VELOCITY_TOPIC", "TYPESTORE", "BagData", "BagError", "BagWriter",

@@ -12,10 +12,10 @@ The configured velocity, heading and steering topics are read in every accepted 
   ``nav_msgs/Odometry``: ``heading_quaternion`` ``(x, y, z, w[, yaw variance])`` of the orientation (the
   assembler checks its norm and takes its yaw; the variance, where the type has one, serves
   ``ekf.measurement_noise_from_covariance``). One Odometry topic may serve velocity and heading;
-* steering, ``sensor_msgs/JointState`` (joint ``steering.joint_name``; duplicate names refused) or
-  ``std_msgs/Float64``: ``steering`` ``(angle,)``.
+* steering, ``sensor_msgs/JointState`` (joint ``steering.joint_name``; duplicate names refused),
+  ``std_msgs/Float64`` or ``std_msgs/Float32``: ``steering`` ``(angle,)``.
 
-The stamp is ``header.stamp`` in seconds; ``std_msgs/Float64`` has no header and a zero header
+The stamp is ``header.stamp`` in seconds; ``std_msgs/Float64`` and ``Float32`` have no header and a zero header
 stamp means "unset", so those use the log time (the receive time of the recorder; online the node
 takes its ROS clock, which ``ros2 bag play --clock`` with use_sim_time makes the log time again).
 Each message is deserialised with the Jazzy typestore and its fields are taken by an extractor
@@ -44,6 +44,7 @@ POSE_COV_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
 ODOMETRY = "nav_msgs/msg/Odometry"
 JOINT_STATE = "sensor_msgs/msg/JointState"
 FLOAT64 = "std_msgs/msg/Float64"
+FLOAT32 = "std_msgs/msg/Float32"
 VECTOR3_STAMPED = "geometry_msgs/msg/Vector3Stamped"
 
 ROLES = ("velocity", "heading", "steering")
@@ -145,7 +146,8 @@ def _from_joint_state(msg: Any, log_ns: int, joint: str) -> tuple[float, tuple[f
     return _stamp(msg, log_ns), (angle,)
 
 
-def _from_float64(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
+def _from_float_data(msg: Any, log_ns: int, _joint: str) -> tuple[float, tuple[float, ...]]:
+    """std_msgs/Float64 or Float32: no header, so the log time."""
     return seconds(log_ns), (float(msg.data),)
 
 
@@ -167,7 +169,8 @@ INPUT_TYPES: dict[str, dict[str, tuple[str, Extractor]]] = {
                 IMU: ("heading_quaternion", _from_imu),
                 POSE_COV_STAMPED: ("heading_quaternion", _from_pose),
                 ODOMETRY: ("heading_quaternion", _from_pose)},
-    "steering": {JOINT_STATE: ("steering", _from_joint_state), FLOAT64: ("steering", _from_float64)},
+    "steering": {JOINT_STATE: ("steering", _from_joint_state), FLOAT64: ("steering", _from_float_data),
+                 FLOAT32: ("steering", _from_float_data)},
 }
 #: message types accepted per input role
 ACCEPTED_TYPES: dict[str, tuple[str, ...]] = {role: tuple(types) for role, types in INPUT_TYPES.items()}

@@ -28,6 +28,8 @@ from typing import Any
 import numpy as np
 
 from transplanter_ident.bags.messages import (
+    FLOAT32,
+    FLOAT64,
     OUTPUT_FRAME_ID,
     TRUTH_STIFFNESS_TOPIC,
     TRUTH_VELOCITY_TOPIC,
@@ -38,6 +40,8 @@ from transplanter_ident.bags.writer import BagWriter
 from transplanter_ident.sim.drivers import HEADING_TYPES, VELOCITY_TYPES
 
 INVALID_MARKERS = ("nan", "covariance")
+#: SimBagOptions.steering_type -> the std_msgs type of a header-less steering angle
+_FLOAT_TYPES = {"float64": FLOAT64, "float32": FLOAT32}
 
 
 @dataclass(frozen=True)
@@ -49,7 +53,7 @@ class SimBagOptions:
     steering_topic: str = "/steering_angle"
     velocity_type: str = "twist"  # twist | twist-cov | odometry
     heading_type: str = "quaternion"  # quaternion | imu | pose-cov | odometry
-    steering_type: str = "joint-state"  # joint-state | float64
+    steering_type: str = "joint-state"  # joint-state | float64 | float32
     velocity_frame: str = "enu"  # enu | ned (ground velocities; an Odometry twist is in body axes)
     heading_frame: str = "enu"  # enu | ned (compass heading, clockwise from north)
     joint_name: str = "front_steering"
@@ -71,7 +75,7 @@ class SimBagOptions:
 
     def __post_init__(self) -> None:
         for name, choices in (("velocity_type", VELOCITY_TYPES), ("heading_type", HEADING_TYPES),
-                              ("steering_type", ("joint-state", "float64")), ("velocity_frame", ("enu", "ned")),
+                              ("steering_type", ("joint-state", "float64", "float32")), ("velocity_frame", ("enu", "ned")),
                               ("heading_frame", ("enu", "ned")), ("invalid_marker", INVALID_MARKERS)):
             if getattr(self, name) not in choices:
                 raise ValueError(f"{name} must be one of {', '.join(choices)}, got {getattr(self, name)!r}")
@@ -160,8 +164,8 @@ def write_sim_bag(result: Any, path: str | Path, options: SimBagOptions | None =
     with BagWriter(path, compress=opt.compress, overwrite=opt.overwrite) as bag:
         for k, i in zip(kinds, indices, strict=True):
             if k in (_STEER, _STEER_LAST):
-                if opt.steering_type == "float64":
-                    bag.write_float64(opt.steering_topic, ns["steer"][i], steer_list[i])
+                if opt.steering_type in _FLOAT_TYPES:
+                    bag.write_float(opt.steering_topic, ns["steer"][i], steer_list[i], _FLOAT_TYPES[opt.steering_type])
                 else:
                     bag.write_joint_state(opt.steering_topic, ns["steer"][i], [opt.joint_name], [steer_list[i]])
             elif k == _VEL:
@@ -218,7 +222,7 @@ def _write_heading(bag: BagWriter, opt: SimBagOptions, stamp: int, gnss: dict[st
 #: SimBagOptions type names -> the estimator's topics.*_type values
 _TYPE_NAMES = {"twist": "TwistStamped", "twist-cov": "TwistWithCovarianceStamped", "odometry": "Odometry",
                "quaternion": "QuaternionStamped", "imu": "Imu", "pose-cov": "PoseWithCovarianceStamped",
-               "joint-state": "JointState", "float64": "Float64"}
+               "joint-state": "JointState", "float64": "Float64", "float32": "Float32"}
 
 
 def reading_parameters(opt: SimBagOptions, *, gnss_delay: float = 0.0, antenna_x: float = 0.0,

@@ -19,6 +19,7 @@ from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
 from transplanter_ident.bags.errors import BagError
 from transplanter_ident.bags.messages import (
+    FLOAT32,
     FLOAT64,
     IMU,
     JOINT_STATE,
@@ -207,9 +208,11 @@ class BagWriter:
                                     effort=empty)
         self.write(topic, JOINT_STATE, msg, stamp_ns if log_ns is None else log_ns)
 
-    def write_float64(self, topic: str, log_ns: int, value: float) -> None:
-        """std_msgs/Float64 (no header: the log time is its only stamp)."""
-        self.write(topic, FLOAT64, _types()[FLOAT64](data=float(value)), log_ns)
+    def write_float(self, topic: str, log_ns: int, value: float, msgtype: str = FLOAT64) -> None:
+        """std_msgs/Float64, or ``msgtype`` std_msgs/Float32 (no header: the log time is its only stamp)."""
+        if msgtype not in (FLOAT64, FLOAT32):
+            raise ValueError(f"write_float: msgtype must be {FLOAT64} or {FLOAT32}, got {msgtype!r}")
+        self.write(topic, msgtype, _types()[msgtype](data=float(value)), log_ns)
 
     def write_vector3(self, topic: str, stamp_ns: int, xyz: Sequence[float], *, frame_id: str = "",
                       log_ns: int | None = None) -> None:

@@ -89,8 +89,8 @@ def build_parser() -> argparse.ArgumentParser:
     enc.add_argument("--heading-type", choices=HEADING_TYPES,
                      help="QuaternionStamped, sensor_msgs/Imu, PoseWithCovarianceStamped or nav_msgs/Odometry (on the "
                      "velocity topic, one message carries both) (default quaternion)")
-    enc.add_argument("--steering-type", choices=("joint-state", "float64"),
-                     help="sensor_msgs/JointState or std_msgs/Float64 (default joint-state)")
+    enc.add_argument("--steering-type", choices=("joint-state", "float64", "float32"),
+                     help="sensor_msgs/JointState, std_msgs/Float64 or std_msgs/Float32 (default joint-state)")
     enc.add_argument("--velocity-frame", choices=("enu", "ned"),
                      help="linear.x/y = east/north (enu) or north/east (ned) (default enu)")
     enc.add_argument("--heading-frame", choices=("enu", "ned"),

@@ -178,9 +178,9 @@ SCHEMA: tuple[Param, ...] = (
          ("geometry_msgs/msg/QuaternionStamped", "sensor_msgs/msg/Imu", "geometry_msgs/msg/PoseWithCovarianceStamped",
           "nav_msgs/msg/Odometry")),
     _str("topics.steering_type", "JointState", "message type of topics.steering (JointState: joint "
-         "steering.joint_name; Float64 has no header: its time is the receive time, on the node's ROS clock online "
+         "steering.joint_name; Float64 and Float32 have no header: their time is the receive time, on the node's ROS clock online "
          "and the log time offline, which agree to the /clock period with use_sim_time and ros2 bag play --clock)",
-         ("sensor_msgs/msg/JointState", "std_msgs/msg/Float64")),
+         ("sensor_msgs/msg/JointState", "std_msgs/msg/Float64", "std_msgs/msg/Float32")),
     _str("frames.velocity", "enu", "frame of the GNSS velocity: enu (linear.x/y = east/north) or ned "
          "(north/east)", FRAMES),
     _str("frames.heading", "enu", "frame of the GNSS heading: enu (ENU yaw) or ned (compass heading, clockwise "

@@ -29,7 +29,7 @@ from geometry_msgs.msg import (
 from nav_msgs.msg import Odometry
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu, JointState
-from std_msgs.msg import Bool, Float64
+from std_msgs.msg import Bool, Float32, Float64
 
 from transplanter_ident.ekf.joint_ekf import Estimate
 from transplanter_ident.epochs.assembler import EpochAssembler
@@ -96,8 +96,9 @@ HEADING_TYPES: dict[str, tuple[type, Feeder]] = {
                                                                  _pose_yaw_variance)),
     "nav_msgs/msg/Odometry": (Odometry, _orientation(lambda msg: msg.pose.pose.orientation, _pose_yaw_variance)),
 }
-#: topics.steering_type -> class (a JointState carries a stamp and joints, a Float64 only the angle)
-STEERING_TYPES: dict[str, type] = {"sensor_msgs/msg/JointState": JointState, "std_msgs/msg/Float64": Float64}
+#: topics.steering_type -> class (a JointState carries a stamp and joints, a Float64 or Float32 only the angle)
+STEERING_TYPES: dict[str, type] = {"sensor_msgs/msg/JointState": JointState, "std_msgs/msg/Float64": Float64,
+                                   "std_msgs/msg/Float32": Float32}
 
 
 def ros_type_name(msg_type: type) -> str:

@@ -11,7 +11,7 @@ Subscriptions (``adapters.INPUT_QOS``: best effort, volatile, 100 deep; names an
     topics.velocity  geometry_msgs/TwistStamped | TwistWithCovarianceStamped | nav_msgs/Odometry (topics.velocity_type)
     topics.heading   geometry_msgs/QuaternionStamped | sensor_msgs/Imu | PoseWithCovarianceStamped | nav_msgs/Odometry
                      (topics.heading_type; one Odometry topic may serve velocity and heading: one subscription)
-    topics.steering  sensor_msgs/JointState (joint steering.joint_name) | std_msgs/Float64 (topics.steering_type;
+    topics.steering  sensor_msgs/JointState (joint steering.joint_name) | std_msgs/Float64 | Float32 (topics.steering_type;
                      no header: stamped with the node's ROS clock on receipt, as a bag's log time offline)
 Publications, once per processed epoch, stamped with the epoch's time and framed ``output.frame_id``:
     ~/cornering_stiffness      geometry_msgs/Vector3Stamped  x = Cf, y = Cr (N/rad per tire)
@@ -46,7 +46,7 @@ from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallba
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64
+from std_msgs.msg import Float32, Float64
 from std_srvs.srv import Trigger
 
 from transplanter_ident.config.params_file import ParamsError, parameter_value
@@ -196,7 +196,7 @@ class EstimatorNode(Node):
             return
         self._process(self._assembler.add_steering(stamp, angle), None)
 
-    def _on_steering_float(self, msg: Float64) -> None:
+    def _on_steering_float(self, msg: Float64 | Float32) -> None:
         self._health.on_message("steering", time.monotonic())
         self._process(self._assembler.add_steering(self._now(), msg.data), None)
 
