@@ -33,6 +33,7 @@ from transplanter_ident.tuning.steering_scale import (
     pooled_scale_objective,
     scaled_epochs,
     search_steering_scale,
+    with_std,
 )
 
 TOLERANCE = 0.005  # relative
@@ -64,12 +65,16 @@ MULTISINE = multisine_steering(math.radians(10.0), (3.0, 5.0, 9.0, 14.0), seed=3
     (1.02, {}, TOLERANCE),  # measured +0.16 %
     (0.99, {}, TOLERANCE),  # +0.14 %
     (1.02, {"steering_offset": math.radians(1.0)}, TOLERANCE),  # with a 1 deg offset too: +0.16 %
-    (1.02, {"steering": MULTISINE}, 2.0 * TOLERANCE),  # +-10 deg multisine, less excitation: +0.52 %
+    (1.02, {"steering": MULTISINE}, 2.0 * TOLERANCE),  # +-10 deg multisine, less excitation: +0.52 %, std 0.58 %
 ], ids=["sine-high", "sine-low", "sine-offset", "multisine"])
 def test_the_scale_is_found_on_three_drives(sensor_gain: float, drive: dict, tolerance: float) -> None:
     bags = [epochs_of(simulate(sine_drive(seed, steering_scale=sensor_gain, **drive))) for seed in range(3)]
     estimate = search_steering_scale(pooled_scale_objective(bags, EstimatorConfig(), "nll"), 1.0)
     assert abs(estimate.scale * sensor_gain - 1.0) <= tolerance, estimate.format("nll")
+    # its std, from the NLL's curvature over the three drives' epochs
+    estimate = with_std(estimate, sum(len(bag) for bag in bags))
+    error = estimate.scale - 1.0 / sensor_gain
+    assert 0.0003 <= estimate.std <= 0.01 and abs(error) <= 3.0 * estimate.std, (error, estimate.format("nll"))
 
 
 def _final_errors(text: str) -> tuple[float, float]:

@@ -42,6 +42,7 @@ from transplanter_ident.tuning.steering_scale import (
     pooled_scale_objective,
     scaled_epochs,
     search_steering_scale,
+    with_std,
     with_steering_scale,
 )
 
@@ -117,6 +118,8 @@ def estimate_bag_steering_scale(decoded: Sequence[Any], params: EstimatorParams,
     epochs = [item.epochs for item in decoded]
     estimate = search_steering_scale(pooled_scale_objective(epochs, params.config, objective, tune_stiffness_noise,
                                                             backend.map), configured)
+    if objective == "nll":  # a likelihood: its curvature is the estimate's information
+        estimate = with_std(estimate, sum(len(e) for e in epochs))
     print(f"tuner: {estimate.format(objective)}", file=stream if stream is not None else sys.stderr, flush=True)
     chosen = with_steering_scale(params, estimate.scale)
     factor = estimate.scale / configured

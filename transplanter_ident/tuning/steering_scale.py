@@ -15,7 +15,8 @@ starts from the stiffness and offset a first pass at that factor ends with (:fun
 
 Over [0.95, 1.05] x the configured scale, in 0.5 % then 0.05 % steps (:func:`.delay.grid_search`).
 On a 2-minute identification drive the NLL's minimum lies within about +-0.7 % of the truth
-(likelihood 1-sigma ~0.35 %), so tune on several bags.
+(likelihood 1-sigma ~0.35 %), so tune on several bags. With the objective ``nll`` the estimate's
+std is the curvature of the pooled NLL there (:func:`with_std`, :func:`.delay.profile_std`).
 """
 
 from __future__ import annotations
@@ -27,13 +28,22 @@ from dataclasses import dataclass, fields, replace
 from transplanter_ident.config.parameters import EstimatorConfig
 from transplanter_ident.config.params_file import EstimatorParams
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
-from transplanter_ident.tuning.delay import MIN_DELAY_EPOCHS, DelayObjective, grid_search, pooled, warm_start
+from transplanter_ident.tuning.delay import (
+    MIN_DELAY_EPOCHS,
+    DelayObjective,
+    grid_search,
+    pooled,
+    profile_std,
+    warm_start,
+)
 from transplanter_ident.tuning.problem import TuningProblem
 
 #: factors on the configured scale searched (a sensor calibrated within 5 %)
 FACTOR_RANGE = (0.95, 1.05)
 COARSE_STEP = 0.005
 FINE_STEP = 0.0005
+#: factors either side of the minimum through which :func:`with_std` fits the NLL's parabola
+CURVATURE_WINDOW = 0.0025
 _NAMES = [f.name for f in fields(Epoch)]
 #: (function, argument tuples) -> results in order: a backend's ``map`` (tuning.parallel), or here
 TaskMap = Callable[[Callable[..., tuple[float, int]], list[tuple]], list[tuple[float, int]]]
@@ -64,17 +74,22 @@ def scale_objective(epochs: EpochArrays, config: EstimatorConfig, factor: float,
 
 @dataclass(frozen=True)
 class ScaleEstimate:
-    """The scale with the lowest objective, the configured one it was searched from, and every point."""
+    """The scale with the lowest objective, the configured one it was searched from, every point, its std.
+
+    ``std``: 1-sigma of ``scale`` (:func:`with_std`); NaN where unknown (objective ``mae``).
+    """
 
     scale: float
     configured: float
     fitness: float
     points: tuple[tuple[float, float], ...]  # (factor on the configured scale, objective)
+    std: float = math.nan
 
     def format(self, objective: str = "objective") -> str:
         """One line: the estimate, its objective, and the objective at the configured scale."""
         at_configured = next((v for f, v in self.points if abs(f - 1.0) < 1e-9), math.nan)
-        return (f"vehicle.steering_scale: {self.scale:.4f} ({objective} {self.fitness:.6g} at the starting Q/R; "
+        spread = f" +- {self.std:.4f}" if math.isfinite(self.std) else ""
+        return (f"vehicle.steering_scale: {self.scale:.4f}{spread} ({objective} {self.fitness:.6g} at the starting Q/R; "
                 f"{at_configured:.6g} at the configured {self.configured:g}; {len(self.points)} scales evaluated)")
 
 
@@ -84,6 +99,13 @@ def search_steering_scale(objective: DelayObjective, configured: float, low: flo
     """Minimise ``objective`` (of factors on ``configured``) over [low, high]: coarse grid, then fine."""
     factor, fitness, points = grid_search(objective, low, high, coarse, fine, "steering scale")
     return ScaleEstimate(configured * factor, configured, fitness, points)
+
+
+def with_std(estimate: ScaleEstimate, epochs: int) -> ScaleEstimate:
+    """``estimate`` with its std: the curvature of the pooled NLL (mean over ``epochs`` epochs) at its minimum."""
+    factor = estimate.scale / estimate.configured
+    std = profile_std(estimate.points, factor, epochs, CURVATURE_WINDOW, FINE_STEP)
+    return replace(estimate, std=estimate.configured * std)
 
 
 def pooled_scale_objective(bags: Sequence[EpochArrays], config: EstimatorConfig, objective: str,
