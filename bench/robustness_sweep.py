@@ -65,6 +65,8 @@ ROWS: dict[str, dict[str, object]] = {
     "GNSS 10 Hz": {"gnss_rate": 10.0},
     "GNSS 2 Hz": {"gnss_rate": 2.0},
     "steering offset 2 deg": {"steering_offset": DEG(2.0)},
+    "steering gain +0.5 %": {"steering_scale": 1.005},
+    "steering gain -0.5 %": {"steering_scale": 0.995},
     "steering gain +1 %": {"steering_scale": 1.01},
     "steering gain -1 %": {"steering_scale": 0.99},
     "steering gain +3 %": {"steering_scale": 1.03},

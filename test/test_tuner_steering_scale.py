@@ -84,7 +84,7 @@ def _final_errors(text: str) -> tuple[float, float]:
 
 
 def test_cli_writes_the_scale_and_replay_loads_it(tmp_path: Path, capsys) -> None:  # noqa: ANN001
-    """Two drives with the sensor 2 % high: OUT.yaml holds the scale, and replay with it is right."""
+    """Two drives with the sensor 2 % high: OUT.yaml holds the scale and its std, and replay with it is right."""
     from transplanter_ident.bags import write_sim_bag
 
     bags = []
@@ -97,7 +97,12 @@ def test_cli_writes_the_scale_and_replay_loads_it(tmp_path: Path, capsys) -> Non
                        "--no-leave-one-out"]) == 0
     printed = capsys.readouterr()
     assert "estimated vehicle.steering_scale:" in printed.out and "# estimated vehicle.steering_scale:" in out.read_text()
-    assert abs(load_params([str(out)]).config.vehicle.steering_scale * 1.02 - 1.0) <= TOLERANCE
+    tuned = load_params([str(out)]).config
+    assert abs(tuned.vehicle.steering_scale * 1.02 - 1.0) <= TOLERANCE
+    # its std (relative) goes into the band: ekf.steering_scale_uncertainty, and the error is within 3 of it
+    uncertainty = tuned.options.steering_scale_uncertainty
+    assert 0.0003 <= uncertainty <= 0.01 and "# estimated ekf.steering_scale_uncertainty:" in out.read_text()
+    assert abs(tuned.vehicle.steering_scale * 1.02 - 1.0) <= 3.0 * uncertainty
 
     assert replay.main([str(bags[0])]) == 0
     unset = _final_errors(capsys.readouterr().out)

@@ -14,7 +14,8 @@ the timing error it may leave is then in the reported Cf, Cr std.
 
 ``--estimate-steering-scale`` then finds ``vehicle.steering_scale`` on those epochs
 (:mod:`transplanter_ident.tuning.steering_scale`; the (bag, scale) pairs of a grid in parallel) and
-hands on the epochs at the estimated scale, cached under the parameters with it.
+hands on the epochs at the estimated scale, cached under the parameters with it; with ``nll`` its
+std goes into ``ekf.steering_scale_uncertainty`` (:func:`scale_calibration`).
 """
 
 from __future__ import annotations
@@ -97,6 +98,22 @@ def estimate_bag_delay(bags: Sequence[str], params: EstimatorParams, backend: Ba
     decoded = [store_bag_epochs(item.bag, chosen, assemble_epochs(item.samples, params, estimate.delay),
                                 item.truth, cache) for item in inputs]
     return DelayRun(estimate, chosen, decoded)
+
+
+def scale_calibration(estimate: ScaleEstimate, params: EstimatorParams, objective: str) -> dict[str, tuple[float, str]]:
+    """The keys to write: ``vehicle.steering_scale``, and ``ekf.steering_scale_uncertainty`` when it has a std.
+
+    The std relative to the scale, combined with the configured uncertainty, capped at the schema's 0.2.
+    """
+    keys = {"vehicle.steering_scale": (estimate.scale, estimate.format(objective))}
+    if not math.isnan(estimate.std):
+        configured = params.config.options.steering_scale_uncertainty
+        relative = estimate.std / estimate.scale
+        value = min(math.hypot(relative, configured), 0.2)
+        keys["ekf.steering_scale_uncertainty"] = (value, f"ekf.steering_scale_uncertainty: {100 * value:.2f} % (the "
+                                                  f"estimated scale's std {100 * relative:.2f} % with the configured "
+                                                  f"{100 * configured:.2f} %; the Cf, Cr std hold the bias it may leave)")
+    return keys
 
 
 def estimate_bag_steering_scale(decoded: Sequence[Any], params: EstimatorParams, backend: Backend, *,

@@ -149,7 +149,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "Q/R, then tune Q/R at that delay; writes gnss.delay (and, with nll, its std as "
                              "ekf.delay_uncertainty) into OUT.yaml")
     parser.add_argument("--estimate-steering-scale", action="store_true", help="then search vehicle.steering_scale "
-                        "(0.95-1.05 x the configured) likewise, tune Q/R at it; writes it into OUT.yaml")
+                        "(0.95-1.05 x the configured) likewise, tune Q/R at it; writes it (with nll, and its std as "
+                        "ekf.steering_scale_uncertainty) into OUT.yaml")
     parser.add_argument("--tune-stiffness-noise", action="store_true",
                         help="also tune the stiffness random walk (q_Cf, q_Cr of ekf.process_noise); by default "
                              "only the physical noises (vy, r, psi and R) are tuned and the stiffness and offset "
@@ -283,12 +284,12 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
     else:
         decoded = load_bags(args.bags, params, local, cache_dir(args), allow_partial=args.allow_partial)
     if args.estimate_steering_scale:  # on the epochs at the delay, ahead of Q/R
-        from transplanter_ident.cli.delay_search import estimate_bag_steering_scale
+        from transplanter_ident.cli.delay_search import estimate_bag_steering_scale, scale_calibration
 
         scale, params, decoded = estimate_bag_steering_scale(
             decoded, params, local, objective=args.objective, tune_stiffness_noise=args.tune_stiffness_noise,
             cache=cache_dir(args))
-        estimated["vehicle.steering_scale"] = (scale.scale, scale.format(args.objective))
+        estimated.update(scale_calibration(scale, params, args.objective))
     epochs = [item.epochs for item in decoded]
     truths = [item.truth for item in decoded]
     config = params.config

@@ -78,6 +78,7 @@ class FilterOptions:
     saturation_prior: float = 0.5  # 1-sigma prior of the saturation the innovations measure (1: min_friction); 0 off
     saturation_memory: float = 300.0  # s, time constant of that measure
     delay_uncertainty: float = 0.0  # s, 1-sigma of the GNSS delay left out of gnss.delay: the std holds its bias
+    steering_scale_uncertainty: float = 0.0  # relative 1-sigma of the steering gain left out of vehicle.steering_scale
     noise_adaptation: bool = True  # R raised to what the innovations show (covariance matching), never lowered
     noise_memory: float = 60.0  # s, time constant of that measure
     max_noise_scale: float = 100.0  # largest factor on R it may set
@@ -115,6 +116,7 @@ class FilterOptions:
                                             "identifiability_memory", "identifiability_period",
                                             "max_identifiable_rel_std"), non_negative=("identifiability_min_steering",
                                                                                    "delay_uncertainty",
+                                                                                   "steering_scale_uncertainty",
                                                                                    "saturation_prior",
                                                                                    "relinearization_window"))
         if not (math.isfinite(self.relinearization_threshold) and self.relinearization_threshold > 0.0):

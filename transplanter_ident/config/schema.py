@@ -251,6 +251,10 @@ SCHEMA: tuple[Param, ...] = (
     _float("ekf.delay_uncertainty", 0.0, "s", "1-sigma of the GNSS timing error left after gnss.delay (a driver "
            "stamping on arrival: its latency's spread): the reported Cf, Cr std hold the bias it causes (~2 % per "
            "ms at 2 m/s; /diagnostics delay_sensitivity_per_ms); 0: off", 0.0, 1.0),
+    _float("ekf.steering_scale_uncertainty", 0.0, "", "relative 1-sigma of the steering sensor's gain left after "
+           "vehicle.steering_scale (tuner --estimate-steering-scale writes its estimate's): the reported Cf, Cr std "
+           "hold the bias it causes (~5-8 % per % at 2 m/s; /diagnostics scale_sensitivity_per_percent); 0: off",
+           0.0, 0.2),
     _bool("ekf.noise_adaptation", True, "raise R to what the innovations show (covariance matching over "
           "ekf.noise_memory; never below the configured or reported R), so noisier sensors neither raise change "
           "alarms nor narrow the band"),

@@ -7,8 +7,11 @@
 * :func:`propagate_tire_bias`: the bias the linear tire takes if the surface is as slippery as
   ``ekf.min_friction`` (first order, through the filter's own F and K); the reported stiffness
   standard deviations include it; :func:`propagate_delay_bias`: likewise per second of GNSS delay
-  left out of ``gnss.delay`` (the std holds it times ``ekf.delay_uncertainty``), and
-  :func:`score_signature` measures that delay, and how far the tires saturate, from the innovations;
+  left out of ``gnss.delay`` (the std holds it times ``ekf.delay_uncertainty``);
+  :func:`propagate_scale_bias`: per unit of steering-sensor gain left out of
+  ``vehicle.steering_scale`` (times ``ekf.steering_scale_uncertainty``; :func:`held_bias_variance`
+  sums what the std holds); :func:`score_signature` measures that delay, and how far the tires
+  saturate, from the innovations;
   :func:`saturation_share` turns the latter into the correction of Cf, Cr and the bias the std keeps;
 * :func:`learn_noise_scales` / :func:`noise_scale`: R as the innovations show it (covariance
   matching, E[e e^T] = H P^- H^T + R), never below the configured R. Sensors noisier than R would
@@ -35,6 +38,7 @@ from transplanter_ident.ekf.layout import (
     M_NOISE_VY,
     M_SATURATION_INFORMATION,
     M_SATURATION_SCORE,
+    M_SCALE_BIAS,
     O_CHANGE,
     O_CUSUM,
     O_LAT_ACC,
@@ -45,6 +49,7 @@ from transplanter_ident.ekf.layout import (
     S_CUSUM_SCALE,
     S_CUSUM_THRESHOLD,
     S_DELAY_MEMORY,
+    S_DELAY_UNCERTAINTY,
     S_LINEAR_RANGE,
     S_MAX_LAT_ACC,
     S_MAX_NOISE_SCALE,
@@ -55,6 +60,7 @@ from transplanter_ident.ekf.layout import (
     S_SATURATION_CORRECTION,
     S_SATURATION_MEMORY,
     S_SATURATION_PRIOR,
+    S_SCALE_UNCERTAINTY,
     V_BIAS,
     VEH_LF,
     VEH_LR,
@@ -204,11 +210,37 @@ def propagate_delay_bias(memo, n, nd, h1, antenna_x, updated, steering_rate, ws)
 
 
 @inline_kernel
+def propagate_scale_bias(memo, settings, n, nd, h1, antenna_x, updated, steering, ws):
+    """The estimate's first-order bias per unit of steering gain left out of the configured one (M_SCALE_BIAS).
+
+    A sensor whose gain is 1 + eps times the configured one makes the true wheel angle the filter's
+    plus eps times the (scaled) sensor angle: a steering offset of -eps * steering over the interval.
+    Only with ``ekf.steering_scale_uncertainty`` > 0 (the tuner's inner loop does not pay for it).
+    """
+    if settings[S_SCALE_UNCERTAINTY] > 0.0:
+        propagate_bias(memo, M_SCALE_BIAS, n, nd, h1, antenna_x, updated, 0.0, 0.0, -steering, ws)
+
+
+@inline_kernel
+def held_bias_variance(memo, settings, i, unpinned):
+    """The variance that state i's std holds for the biases of the model's known errors.
+
+    The tire's (the share ``unpinned`` of it), the delay's and the steering gain's at their configured
+    1-sigma (``ekf.delay_uncertainty``, ``ekf.steering_scale_uncertainty``).
+    """
+    tire = memo[M_BIAS + i]
+    delay = memo[M_DELAY_BIAS + i] * settings[S_DELAY_UNCERTAINTY]
+    scale = memo[M_SCALE_BIAS + i] * settings[S_SCALE_UNCERTAINTY]
+    return unpinned * tire * tire + delay * delay + scale * scale
+
+
+@inline_kernel
 def forget_motion_bias(memo, nd):
-    """The motion states taken from a measurement carry no bias of the model (either kind)."""
+    """The motion states taken from a measurement carry no bias of the model (any kind)."""
     for i in range(nd):
         memo[M_BIAS + i] = 0.0
         memo[M_DELAY_BIAS + i] = 0.0
+        memo[M_SCALE_BIAS + i] = 0.0
 
 
 @inline_kernel

@@ -31,6 +31,8 @@ from transplanter_ident.ekf.layout import (
     O_S11,
     O_SATURATION,
     O_SATURATION_STD,
+    O_SCALE_SENS_F,
+    O_SCALE_SENS_R,
     O_STATUS,
     O_TIRE_BIAS_F,
     O_TIRE_BIAS_R,
@@ -78,6 +80,11 @@ class Estimate:
     def delay_sensitivity(self) -> tuple[float, float]:
         """Relative error of Cf, Cr per second of GNSS delay left out of gnss.delay (adaptation.py; first order)."""
         return self._pair(O_DELAY_SENS_F, O_DELAY_SENS_R, 0.0)
+
+    @property
+    def scale_sensitivity(self) -> tuple[float, float]:
+        """Relative error of Cf, Cr per unit of steering gain left out (0 unless ekf.steering_scale_uncertainty)."""
+        return self._pair(O_SCALE_SENS_F, O_SCALE_SENS_R, 0.0)
 
     @property
     def delay_estimate(self) -> tuple[float, float]:

@@ -34,10 +34,12 @@ from transplanter_ident.ekf.adaptation import (
     beyond_linear_range,
     detect_change,
     forget_motion_bias,
+    held_bias_variance,
     known_to,
     learn_noise_scales,
     noise_scale,
     propagate_delay_bias,
+    propagate_scale_bias,
     propagate_tire_bias,
     saturation_share,
     score_model_errors,
@@ -61,6 +63,7 @@ from transplanter_ident.ekf.layout import (
     M_NOISE_VY,
     M_SATURATION_INFORMATION,
     M_SATURATION_SCORE,
+    M_SCALE_BIAS,
     M_T_PREV,
     N_MODEL,
     N_MOTION_HEADING,
@@ -87,6 +90,7 @@ from transplanter_ident.ekf.layout import (
     O_S11,
     O_SATURATION,
     O_SATURATION_STD,
+    O_SCALE_SENS_F,
     O_SLIP_F,
     O_SLIP_R,
     O_STATUS,
@@ -95,7 +99,6 @@ from transplanter_ident.ekf.layout import (
     O_VY_MODEL,
     S_ANTENNA_X,
     S_CHANGE_DETECTION,
-    S_DELAY_UNCERTAINTY,
     S_GATE,
     S_HIGH,
     S_LOG,
@@ -188,15 +191,15 @@ def make_kernels(heading):
         out[O_VY] = x[X_VY]
         out[O_R] = x[X_R]
         share, unpinned = saturation_share(memo, settings)  # of the bias at min_friction (adaptation.py)
-        for k in range(2):  # front, rear; the std holds the saturation and delay biases (adaptation.py)
+        for k in range(2):  # front, rear; the std holds the saturation, delay and steering gain biases
             c, dc = stiffness(x, settings, k)
             bias = memo[M_BIAS + nf + k]
-            delay_bias = memo[M_DELAY_BIAS + nf + k] * settings[S_DELAY_UNCERTAINTY]
             out[O_CF + k] = c + dc * share * bias
-            out[O_CF_STD + k] = dc * math.sqrt(max(p[nf + k, nf + k], 0.0) + unpinned * bias * bias
-                                               + delay_bias * delay_bias)
+            held = held_bias_variance(memo, settings, nf + k, unpinned)
+            out[O_CF_STD + k] = dc * math.sqrt(max(p[nf + k, nf + k], 0.0) + held)
             out[O_TIRE_BIAS_F + k] = dc * bias / c if c != 0.0 else 0.0
             out[O_DELAY_SENS_F + k] = -dc * memo[M_DELAY_BIAS + nf + k] / c if c != 0.0 else 0.0  # estimate - truth
+            out[O_SCALE_SENS_F + k] = -dc * memo[M_SCALE_BIAS + nf + k] / c if c != 0.0 else 0.0
         out[O_OFFSET] = x[nb]
         out[O_OFFSET_STD] = math.sqrt(max(p[nb, nb], 0.0))
         denominator = math.sqrt(max(p[nf, nf], 0.0) * max(p[nr, nr], 0.0))
@@ -284,7 +287,7 @@ def make_kernels(heading):
         5. Gate; after max_gated gated epochs in a row, re-initialise the motion states.
         6. Joseph update (motion only outside the linear tire range); clamp the stiffness.
         7. Roll back if anything became non-finite; re-initialise if that lasts (:mod:`.recovery`); else
-           propagate the tire's and the delay's biases, learn R, and score the delay and the tires' saturation
+           propagate the tire's and the delay's (and the steering gain's) biases, learn R, and score the delay and the tires' saturation
            from the innovations (the saturation's share corrects Cf, Cr in the outputs).
         """
         out[:] = 0.0
@@ -347,8 +350,7 @@ def make_kernels(heading):
         hph01 = p[X_VY, h1] + antenna_x * p[X_R, h1]
         s00, s01, s11 = innovation_covariance(heading, hph00, hph01, hph11, r0, r1, speed)
         nis, det = normalized_innovation_squared(e0, e1, s00, s01, s11)  # det NaN: S lost definiteness, roll back
-        out[O_E0] = e0
-        out[O_E1] = e1
+        out[O_E0], out[O_E1] = e0, e1
         out[O_S00] = s00
         out[O_S01] = s01
         out[O_S11] = s11
@@ -387,6 +389,7 @@ def make_kernels(heading):
         tire0, tire1 = propagate_tire_bias(memo, vehicle, settings, n, nd, h1, antenna_x, updated, out[O_SLIP_F],
                                            out[O_SLIP_R], cf_now, cr_now, log_state, ws)
         g0, g1 = propagate_delay_bias(memo, n, nd, h1, antenna_x, updated, steering_rate, ws)
+        propagate_scale_bias(memo, settings, n, nd, h1, antenna_x, updated, steering, ws)
         if updated:
             learn_noise_scales(memo, settings, dt, e0, e1, s00 - r0, s11 - r1, r0, r1, r_noise[Z_VY],
                                r_noise[Z_SECOND])

@@ -41,7 +41,8 @@ S_NOISE_ADAPTATION, S_NOISE_MEMORY, S_MAX_NOISE_SCALE = 28, 29, 30  # adaptation
 S_DELAY_UNCERTAINTY = 31  # s, 1-sigma of the GNSS delay left out of gnss.delay (adaptation.propagate_delay_bias)
 S_DELAY_MEMORY = 32  # s, time constant of the delay's adaptation.score_signature (ekf.identifiability_memory)
 S_SATURATION_PRIOR, S_SATURATION_MEMORY = 33, 34  # adaptation.saturation_share, and its measure's memory (s)
-N_SETTINGS = 35
+S_SCALE_UNCERTAINTY = 35  # relative 1-sigma of the steering sensor's gain left out of vehicle.steering_scale
+N_SETTINGS = 36
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6
@@ -54,7 +55,8 @@ O_NIS_CONFIGURED = 28  # the NIS against the configured R, without those factors
 O_DELAY_SENS_F, O_DELAY_SENS_R = 29, 30  # relative error of Cf, Cr per second of GNSS delay left out of gnss.delay
 O_DELAY_ESTIMATE, O_DELAY_ESTIMATE_STD = 31, 32  # s: that delay as the innovations show it (std 0: none yet)
 O_SATURATION, O_SATURATION_STD = 33, 34  # the tire's saturation as a fraction of one at min_friction (std 0: none)
-N_OUTPUTS = 35
+O_SCALE_SENS_F, O_SCALE_SENS_R = 35, 36  # relative error of Cf, Cr per unit (relative) steering gain error (0: off)
+N_OUTPUTS = 37
 
 # memo vector
 M_T_PREV, M_INITIALISED, M_GATED, M_CUSUM, M_ADAPT_UNTIL, M_DIVERGED = 0, 1, 2, 3, 4, 5
@@ -67,7 +69,8 @@ M_DELAY_BIAS = 16  # memo[M_DELAY_BIAS + i]: the bias of state i per second of u
 M_DELAY_SCORE, M_DELAY_INFORMATION, M_DELAY_SETTLED = 22, 23, 24
 # the same measure of the tire's saturation, in units of a tire at min_friction (adaptation.score_signature)
 M_SATURATION_SCORE, M_SATURATION_INFORMATION = 25, 26
-N_MEMO = 27
+M_SCALE_BIAS = 27  # memo[M_SCALE_BIAS + i]: the bias of state i per unit (relative) steering gain error
+N_MEMO = 33
 
 # the open-loop model's state [vy, r, psi]
 N_MODEL = 3

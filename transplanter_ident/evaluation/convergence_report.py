@@ -37,7 +37,8 @@ def convergence_report(node: str, estimate: Estimate | None, updates: int, limit
               ("tire_saturation", "{:.3f} {:.3f}".format(*estimate.saturation)),
               ("noise_factors", "{:.3f} {:.3f}".format(*estimate.noise_factors)),
               ("delay_sensitivity_per_ms", "{:+.4f} {:+.4f}".format(*(1.0e-3 * v for v in estimate.delay_sensitivity))),
-              ("delay_estimate_ms", "{:+.1f} {:.1f}".format(*(1.0e3 * v for v in estimate.delay_estimate))))
+              ("delay_estimate_ms", "{:+.1f} {:.1f}".format(*(1.0e3 * v for v in estimate.delay_estimate))),
+              ("scale_sensitivity_per_percent", "{:+.4f} {:+.4f}".format(*(0.01 * v for v in estimate.scale_sensitivity))))
     if converged:
         return HealthReport(name, OK, f"converged: Cf {cf:.0f} +- {100 * rel_f:.1f} %, "
                             f"Cr {cr:.0f} +- {100 * rel_r:.1f} %", values)
