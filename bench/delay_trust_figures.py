@@ -13,6 +13,7 @@ Run: ``.venv/bin/python bench/delay_trust_figures.py [--groups 10] [--bags 1] [-
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -51,6 +52,12 @@ def judged(result: SimResult, samples: list, params: EstimatorParams, uncertaint
     return float(np.mean(kept[after])), missed, max(abs(e) for e in run.final_errors())
 
 
+def _mean_missed(drives: list[tuple[float, float, float]]) -> float:
+    """The mean over drives of the share of valid epochs missed (drives never valid left out; 0 if none)."""
+    shares = [d[1] for d in drives if not math.isnan(d[1])]
+    return float(np.mean(shares)) if shares else 0.0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--groups", type=int, default=10)
@@ -70,15 +77,14 @@ def main(argv: list[str] | None = None) -> int:
         for (name, figures), uncertainty in zip(rows.items(), (0.0, estimate.std), strict=True):
             drives = [judged(r, s, at, uncertainty) for r, s in zip(results, samples, strict=True)]
             figures.extend(drives)
-            a = np.array(drives)
-            line += f" | {name}: valid {a[:, 0].mean():.2f}, missed {np.nanmean(a[:, 1]) if np.isfinite(a[:, 1]).any() else 0:.3f}"
+            line += f" | {name}: valid {np.mean([d[0] for d in drives]):.2f}, missed {_mean_missed(drives):.3f}"
         print(line, flush=True)
     for name, figures in rows.items():
-        a = np.array(figures)
-        missed = np.nanmean(a[:, 1]) if np.isfinite(a[:, 1]).any() else 0.0
-        print(f"{args.scenario}, {args.bags} bag(s) per search, {args.groups} searches, {name}: valid {a[:, 0].mean():.3f}, "
-              f"valid and outside +-2 sigma {missed:.3f} (worst drive {np.nanmax(a[:, 1]) if np.isfinite(a[:, 1]).any() else 0:.2f}), "
-              f"final |error| median {100 * np.median(a[:, 2]):.1f} %, worst {100 * a[:, 2].max():.1f} %")
+        worst = max((d[1] for d in figures if not math.isnan(d[1])), default=0.0)
+        print(f"{args.scenario}, {args.bags} bag(s) per search, {args.groups} searches, {name}: valid "
+              f"{np.mean([d[0] for d in figures]):.3f}, valid and outside +-2 sigma {_mean_missed(figures):.3f} "
+              f"(worst drive {worst:.2f}), final |error| median {100 * np.median([d[2] for d in figures]):.1f} %, "
+              f"worst {100 * max(d[2] for d in figures):.1f} %")
     return 0
 
 

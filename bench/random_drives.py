@@ -1,6 +1,7 @@
 """Random drives the estimator is configured right for: is a valid estimate ever confidently wrong?
 
-Not a test (test/test_random_drives.py asserts the pooled coverage on fewer draws). Each draw (``--draws``, from ``--seed``) is one drive of the project's simulator with
+Not a test (test/test_random_drives.py asserts the pooled coverage on fewer draws). Each draw
+(``--draws``, from ``--seed``) is one drive of the project's simulator with
 its conditions drawn at random over what a transplanter meets: speed 1-3 m/s; a sine (+-5-25 deg,
 period 3-14 s) or a multisine (+-5-20 deg, four periods of 2-16 s) steer; linear tires or tanh tires
 of friction 0.3-0.9 (``ekf.min_friction`` is 0.3); Cf 5000-15000 N/rad, Cr 1-1.6 Cf; mass 600-1200
