@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -63,15 +63,10 @@ class DelayRun:
         with the configured uncertainty (a latency's spread, say), capped at the schema's 1 s (a delay
         the objective does not pin: the std then holds a bias no band would narrow).
         """
-        keys = {"gnss.delay": (self.estimate.delay, self.estimate.format(objective))}
-        std = self.estimate.std
-        if not math.isnan(std):
-            configured = self.params.config.options.delay_uncertainty
-            value = min(math.hypot(std, configured), 1.0)
-            keys["ekf.delay_uncertainty"] = (value, f"ekf.delay_uncertainty: {1e3 * value:.1f} ms (the estimated "
-                                             f"gnss.delay's std {1e3 * std:.1f} ms with the configured "
-                                             f"{1e3 * configured:.1f} ms; the Cf, Cr std hold the bias it may leave)")
-        return keys
+        return {"gnss.delay": (self.estimate.delay, self.estimate.format(objective)),
+                **held_uncertainty("ekf.delay_uncertainty", self.estimate.std,
+                                   self.params.config.options.delay_uncertainty, 1.0, "the estimated gnss.delay",
+                                   lambda v: f"{1e3 * v:.1f} ms")}
 
 
 def estimate_bag_delay(bags: Sequence[str], params: EstimatorParams, backend: Backend, *, objective: str,
@@ -105,15 +100,23 @@ def scale_calibration(estimate: ScaleEstimate, params: EstimatorParams, objectiv
 
     The std relative to the scale, combined with the configured uncertainty, capped at the schema's 0.2.
     """
-    keys = {"vehicle.steering_scale": (estimate.scale, estimate.format(objective))}
-    if not math.isnan(estimate.std):
-        configured = params.config.options.steering_scale_uncertainty
-        relative = estimate.std / estimate.scale
-        value = min(math.hypot(relative, configured), 0.2)
-        keys["ekf.steering_scale_uncertainty"] = (value, f"ekf.steering_scale_uncertainty: {100 * value:.2f} % (the "
-                                                  f"estimated scale's std {100 * relative:.2f} % with the configured "
-                                                  f"{100 * configured:.2f} %; the Cf, Cr std hold the bias it may leave)")
-    return keys
+    return {"vehicle.steering_scale": (estimate.scale, estimate.format(objective)),
+            **held_uncertainty("ekf.steering_scale_uncertainty", estimate.std / estimate.scale,
+                               params.config.options.steering_scale_uncertainty, 0.2, "the estimated scale",
+                               lambda v: f"{100 * v:.2f} %")}
+
+
+def held_uncertainty(key: str, std: float, configured: float, cap: float, what: str,
+                     shown: Callable[[float], str]) -> dict[str, tuple[float, str]]:
+    """{key: (value, line)}: a calibration's ``std`` combined with the ``configured`` one, capped at ``cap``.
+
+    Empty without a std (NaN: objective ``mae``). The estimator's Cf, Cr std then hold the bias it may leave.
+    """
+    if math.isnan(std):
+        return {}
+    value = min(math.hypot(std, configured), cap)
+    return {key: (value, f"{key}: {shown(value)} ({what}'s std {shown(std)} with the configured {shown(configured)}; "
+                         "the Cf, Cr std hold the bias it may leave)")}
 
 
 def estimate_bag_steering_scale(decoded: Sequence[Any], params: EstimatorParams, backend: Backend, *,
