@@ -11,7 +11,12 @@ otherwise. From 30 s on it prints, per draw, the share of epochs flagged valid, 
 whose +-2 sigma misses Cf or Cr, and the final errors; then the pooled figures and the draws whose
 valid epochs missed the truth more than 5 % of the time, with their conditions.
 
-Run: ``.venv/bin/python bench/random_drives.py [--draws 40] [--seed 0]``
+``--independent``: the drives come from the simulator that shares no code with the package's
+(test/independent_sim.py: adaptive RK45, Magic Formula tires of friction 0.3-0.9, or 5 for a nearly
+linear tire, the project's sensor noise): sine steers only, speed, stiffness, vehicle and GNSS rate
+drawn as above, and an antenna lever arm (x -0.5-1.0 m, y +-0.6 m) the estimator is told.
+
+Run: ``.venv/bin/python bench/random_drives.py [--draws 40] [--seed 0] [--independent]``
 """
 
 from __future__ import annotations
@@ -25,29 +30,55 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 
 from drives import ValidityFigures, pooled_validity_figures, random_drive  # noqa: E402
+from independent_sim import independent_drive  # noqa: E402
 from test_validity import epochs_of  # noqa: E402
 
-from transplanter_ident.config.parameters import EstimatorConfig  # noqa: E402
-from transplanter_ident.sim.simulator import SimConfig, simulate  # noqa: E402
+from transplanter_ident.config.parameters import EstimatorConfig, VehicleParams  # noqa: E402
+from transplanter_ident.sim.simulator import SimResult, simulate  # noqa: E402
 
 START = 30.0  # s
 
 
-def judge(sim: SimConfig) -> ValidityFigures:
+def independent_random_drive(rng: np.random.Generator, seed: int) -> tuple[SimResult, VehicleParams, str]:
+    """A sine drive of the independent simulator with its conditions drawn from ``rng``, its vehicle, a line."""
+    speed, amplitude, period = rng.uniform(1.0, 3.0), rng.uniform(5.0, 25.0), rng.uniform(3.0, 14.0)
+    friction = 5.0 if rng.random() < 0.4 else rng.uniform(0.3, 0.9)
+    cf = rng.uniform(5000.0, 15000.0)
+    cr = cf * rng.uniform(1.0, 1.6)
+    vehicle = VehicleParams(mass=rng.uniform(600.0, 1200.0), lf=rng.uniform(0.5, 0.9), lr=rng.uniform(0.3, 0.7),
+                            antenna_x=rng.uniform(-0.5, 1.0), antenna_y=rng.uniform(-0.6, 0.6))
+    rate = float(rng.choice([5.0, 10.0]))
+    result = independent_drive(seed, speed=speed, amplitude_deg=amplitude, period=period, duration=180.0,
+                               gnss_rate=rate, friction=friction, cf=cf, cr=cr, vehicle=vehicle)
+    return result, vehicle, (f"{speed:.1f} m/s, sine +-{amplitude:.0f} deg/{period:.1f} s, Magic Formula mu "
+                             f"{friction:.2f}, Cf {cf:.0f} Cr {cr:.0f}, m {vehicle.mass:.0f} lf {vehicle.lf:.2f} lr "
+                             f"{vehicle.lr:.2f}, antenna {vehicle.antenna_x:+.2f}/{vehicle.antenna_y:+.2f} m, "
+                             f"{rate:.0f} Hz")
+
+
+def judge(result: SimResult, vehicle: VehicleParams) -> ValidityFigures:
     """The drive through the estimator configured with its vehicle: validity and coverage from START on."""
-    return pooled_validity_figures([(simulate(sim), EstimatorConfig(vehicle=sim.vehicle))], epochs_of, START)
+    def epochs_for(drive: SimResult):  # noqa: ANN202 - the validity's epochs, with the vehicle's lever arm
+        return epochs_of(drive, antenna_x=vehicle.antenna_x, antenna_y=vehicle.antenna_y)
+
+    return pooled_validity_figures([(result, EstimatorConfig(vehicle=vehicle))], epochs_for, START)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--draws", type=int, default=40)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--independent", action="store_true", help="drives of test/independent_sim.py")
     args = parser.parse_args(argv)
     rng = np.random.default_rng(args.seed)
     rows = []
     for index in range(args.draws):
-        sim, what = random_drive(rng, args.seed * 1000 + index)
-        figures = judge(sim)
+        if args.independent:
+            result, vehicle, what = independent_random_drive(rng, args.seed * 1000 + index)
+        else:
+            sim, what = random_drive(rng, args.seed * 1000 + index)
+            result, vehicle = simulate(sim), sim.vehicle
+        figures = judge(result, vehicle)
         rows.append((figures, what))
         shown = f"{figures.missed:.2f}" if figures.valid > 0 else "    -"
         print(f"{index:3d} valid {figures.valid:.2f} missed {shown} final |error| Cf {100 * figures.finals[0]:5.1f} % "

@@ -287,8 +287,8 @@ def make_kernels(heading):
         5. Gate; after max_gated gated epochs in a row, re-initialise the motion states.
         6. Joseph update (motion only outside the linear tire range); clamp the stiffness.
         7. Roll back if anything became non-finite; re-initialise if that lasts (:mod:`.recovery`); else
-           propagate the tire's and the delay's (and the steering gain's) biases, learn R, and score the delay and the tires' saturation
-           from the innovations (the saturation's share corrects Cf, Cr in the outputs).
+           propagate the tire's, the delay's and the steering gain's biases, learn R, and score the delay
+           and the tires' saturation from the innovations (the saturation's share corrects Cf, Cr).
         """
         out[:] = 0.0
         # 1.
