@@ -47,7 +47,7 @@ SIMULATED = (
     ("ned-20hz", ["--gnss-rate", "20", "--velocity-frame", "ned", "--heading-frame", "ned"], True),
     ("delay", ["--gnss-delay", "0.08"], True),
     ("float64-jitter", ["--steering-type", "float64", "--heading-lag", "0.01", "--heading-lag-jitter", "0.005"], True),
-    ("float32", ["--steering-type", "float32"], False),  # the per-message decoder: no fixed float64 layout
+    ("float32", ["--steering-type", "float32"], True),
     ("odometry-imu", ["--velocity-type", "odometry", "--heading-type", "imu"], True),
     ("pose-cov-late-start", ["--heading-type", "pose-cov", "--start-time", "1000"], True),
     ("antenna-offset", ["--antenna-x", "0.6", "--antenna-y", "0.2", "--steering-offset", "0.01"], True),

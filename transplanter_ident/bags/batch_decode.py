@@ -5,7 +5,7 @@ connection are nearly always laid out alike: the same length, the same frame ids
 only the stamps and the numbers differ. For such a group the fields are read at fixed byte
 offsets as columns. A group is checked first:
 
-* its *structure* (every byte but the stamp and the float64 data: the encapsulation, string lengths
+* its *structure* (every byte but the stamp and the float data: the encapsulation, string lengths
   and contents, sequence counts, padding) equals that of a template message, and
 * the template decodes with rosbags, and the extractor of :mod:`.messages` gives bit for bit the
   stamp and values read at the offsets (the layout is derived from the template's own strings).
@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from transplanter_ident.bags.messages import (
+    FLOAT32,
     FLOAT64,
     IMU,
     JOINT_STATE,
@@ -53,8 +54,9 @@ class Layout:
 
     size: int  # the message length in bytes
     stamped: bool  # header.stamp at PAYLOAD (sec int32, nanosec uint32)
-    fields: tuple[int, ...]  # offsets of the float64 values, in the extractor's order
+    fields: tuple[int, ...]  # offsets of the float values, in the extractor's order
     data: tuple[tuple[int, int], ...]  # [start, end) byte ranges of float data (excluded from the structure)
+    itemsize: int = 8  # bytes per value: float64, or 4 for std_msgs/Float32
 
 
 def _u32(buf: bytes, pos: int) -> int:
@@ -127,12 +129,14 @@ def layout_of(msgtype: str, buf: bytes, role: str, template: Any, joint: str) ->
         return _joint_state(buf, names.index(joint)) if joint in names else None
     if msgtype == FLOAT64:
         return Layout(PAYLOAD + 8, False, (PAYLOAD,), ((PAYLOAD, PAYLOAD + 8),))
+    if msgtype == FLOAT32:
+        return Layout(PAYLOAD + 4, False, (PAYLOAD,), ((PAYLOAD, PAYLOAD + 4),), itemsize=4)
     return None
 
 
 def width_of(msgtype: str, role: str) -> int:
     """How many values the extractor of ``msgtype`` gives for ``role`` (:mod:`.messages`)."""
-    if msgtype in (JOINT_STATE, FLOAT64):
+    if msgtype in (JOINT_STATE, FLOAT64, FLOAT32):
         return 1
     if msgtype == TWIST_STAMPED:
         return 3 if role == "truth_velocity" else 2
@@ -153,8 +157,9 @@ def _structure_mask(layout: Layout) -> np.ndarray:
 def _columns(rows: np.ndarray, layout: Layout, log_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(stamps s, values n x k) of equally laid-out messages (rows: n x size uint8), as the extractors give them."""
     values = np.empty((rows.shape[0], len(layout.fields)), dtype=np.float64)
+    kind = "<f8" if layout.itemsize == 8 else "<f4"  # a float32 widens exactly, as float(msg.data) does
     for j, offset in enumerate(layout.fields):
-        values[:, j] = np.ascontiguousarray(rows[:, offset:offset + 8]).view("<f8")[:, 0]
+        values[:, j] = np.ascontiguousarray(rows[:, offset:offset + layout.itemsize]).view(kind)[:, 0]
     log_s = log_ns / 1e9
     if not layout.stamped:
         return log_s, values
