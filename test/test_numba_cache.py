@@ -91,3 +91,31 @@ def test_the_nodes_lean_loading_gives_the_same_filter(warmed_numba_cache: Path, 
     assert lean["rows"] == plain["rows"] and len(plain["rows"]) > 50
     cold = run("lean", tmp_path / "cold-cache", LEAN_PROGRAM)
     assert cold["lean"] and cold["rows"] == plain["rows"]
+
+
+def test_each_variant_of_a_factory_kernel_has_a_name_of_its_own() -> None:
+    """Cached entries compiled by different processes must never define one symbol for two sizes.
+
+    numba names a function's symbol by its qualified name and a per-process counter, so two
+    processes can both emit ``run_n$2``, one per size; a process loading both entries then calls one
+    size's code with the other's arrays (heap corruption in ``make demo``, session 14). The
+    factories' kernels are renamed after their variant (jit._variant_named), the same in every process.
+    """
+    from transplanter_ident.ekf import entries, model
+    from transplanter_ident.jit import sized_kernel
+
+    pairs = [(entries._run_heading, entries._run_yaw_rate), (entries._step_heading, entries._step_yaw_rate),
+             (entries._objective_heading, entries._objective_yaw_rate),
+             (model.discretize_heading, model.discretize_yaw_rate)]
+    for heading, yaw_rate in pairs:
+        assert heading.py_func.__qualname__ != yaw_rate.py_func.__qualname__, heading.py_func.__qualname__
+
+    def factory(size: int):  # noqa: ANN202
+        @sized_kernel
+        def kernel(x):  # noqa: ANN001, ANN202
+            return x * size
+
+        return kernel
+
+    names = [factory(size).py_func.__qualname__ for size in (5, 6, 5)]
+    assert names[0] != names[1] and names[0] == names[2]  # per variant, and the same when made again

@@ -6,7 +6,11 @@
 * :func:`sized_kernel`: kernels made per state size by a factory (closures). They are not
   cached: numba keys a cached closure by its name and source line, which every size shares,
   so a cache folder could hand one size's code to another. The module-level entries that call
-  them carry their code into the cache instead;
+  them carry their code into the cache instead. Each is named after its variant
+  (:func:`_variant_named`): numba's symbol for a function is its qualified name and a counter of
+  the process that compiled it, so two entries cached by two processes could both define
+  ``run_n$2``, one per size, and a process loading both would call one size's code with the
+  other's arrays (it did: heap corruption in ``make demo`` after a piecemeal cache);
 * :func:`entry_kernel` (and :func:`parallel_entry_kernel`, with prange loops on all threads):
   module-level entry points, cached on disk (the folder is keyed by the
   sources, see ``transplanter_ident/__init__.py``). ``runtime=False`` compiles without numba's
@@ -22,6 +26,7 @@ health check rolls back, instead of raising from compiled code.
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Callable
 from typing import Any
 
@@ -33,6 +38,31 @@ def inline_kernel(fn: Callable[..., Any]) -> Any:
     return numba.njit(cache=False, inline="always", error_model="numpy")(fn)
 
 
+def _variant_named(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``fn`` (a factory's closure) renamed after the variant it closes over: sizes, flags, the kernels it calls.
+
+    So the per-size closures of one factory never share a qualified name, whatever the process
+    that compiles them (see the module docstring).
+    """
+    parts = []
+    for cell in fn.__closure__ or ():
+        try:
+            value = cell.cell_contents
+        except ValueError:  # a cell not filled yet (a kernel defined later in the factory)
+            continue
+        if isinstance(value, (bool, int)):
+            parts.append(str(int(value)))
+        elif isinstance(value, str):
+            parts.append(value)
+        elif hasattr(value, "py_func"):  # a kernel it calls: that kernel's (variant) name
+            parts.append(value.py_func.__name__)
+    if parts:  # a short digest: the same in every process, different for every variant
+        suffix = "_v" + hashlib.sha1("|".join(parts).encode()).hexdigest()[:10]
+        fn.__name__ += suffix
+        fn.__qualname__ += suffix
+    return fn
+
+
 def called_kernel(fn: Callable[..., Any]) -> Any:
     """A helper compiled once and called, not inlined into the caller's IR (LLVM may still inline it).
 
@@ -40,7 +70,7 @@ def called_kernel(fn: Callable[..., Any]) -> Any:
     repeats type inference at every call site, which made most of the step's compile time.
     Without numba's runtime, as the step it serves (nothing allocated, no reference counts).
     """
-    return numba.njit(cache=False, error_model="numpy", _nrt=False)(fn)
+    return numba.njit(cache=False, error_model="numpy", _nrt=False)(_variant_named(fn))
 
 
 def _njit(fn: Callable[..., Any] | None, runtime: bool, **options: Any) -> Any:
@@ -55,8 +85,10 @@ def _njit(fn: Callable[..., Any] | None, runtime: bool, **options: Any) -> Any:
 
 
 def sized_kernel(fn: Callable[..., Any] | None = None, *, runtime: bool = True) -> Any:
-    """A kernel made by a per-size factory (not cached; see the module docstring)."""
-    return _njit(fn, runtime, cache=False)
+    """A kernel made by a per-size factory (not cached, named after its variant; see the module docstring)."""
+    if fn is not None:
+        return _njit(_variant_named(fn), runtime, cache=False)
+    return lambda f: _njit(_variant_named(f), runtime, cache=False)
 
 
 def entry_kernel(fn: Callable[..., Any] | None = None, *, runtime: bool = True) -> Any:
