@@ -36,11 +36,18 @@ from transplanter_ident.config.parameters import (  # noqa: E402
     VehicleParams,
 )
 from transplanter_ident.evaluation.validity import decide_sequence  # noqa: E402
-from transplanter_ident.sim.signals import StiffnessSchedule, multisine_steering, sine_steering  # noqa: E402
+from transplanter_ident.sim.signals import (  # noqa: E402
+    StiffnessSchedule,
+    field_work,
+    multisine_steering,
+    sine_steering,
+)
 from transplanter_ident.sim.simulator import SensorNoise, SimResult, simulate  # noqa: E402
 
 DEG = math.radians
 NOISE = SensorNoise()
+FIELD_STEERING, FIELD_SPEED = field_work()  # rows at 2 m/s, +-2 deg; U-turns at 1.2 m/s, 30 deg
+SLOW_FIELD_STEERING, SLOW_FIELD_SPEED = field_work(row_speed=1.2, turn_speed=0.7)
 ROWS: dict[str, dict[str, object]] = {
     "clean": {},
     "1 m/s": {"speed": 1.0},
@@ -99,6 +106,11 @@ ROWS: dict[str, dict[str, object]] = {
     "side slope 2 deg": {"bank_angle": DEG(2.0)},
     "side slope 5 deg": {"bank_angle": DEG(5.0)},
     "heavier, longer vehicle": {"vehicle": VehicleParams(mass=1400.0, lf=0.9, lr=0.6)},
+    "field work": {"duration": 300.0, "steering": FIELD_STEERING, "speed_profile": FIELD_SPEED},
+    "field work, tanh tire mu 0.4": {"duration": 300.0, "steering": FIELD_STEERING, "speed_profile": FIELD_SPEED,
+                                     "tire": "saturating", "friction": 0.4},
+    "field work, rows at 1.2 m/s": {"duration": 300.0, "steering": SLOW_FIELD_STEERING,
+                                    "speed_profile": SLOW_FIELD_SPEED},
     "stiffness drifting -40 % over 4 min": {"duration": 240.0, "stiffness": StiffnessSchedule(
         times=(0.0, 240.0), front=(8000.0, 4800.0), rear=(10000.0, 6000.0), transition=240.0)},
 }

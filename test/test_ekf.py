@@ -29,7 +29,9 @@ from transplanter_ident.ekf.layout import (
     O_NOISE_SCALE_SECOND,
     O_NOISE_SCALE_VY,
     O_STATUS,
+    V_SPEED_GAIN,
     W_F,
+    W_VEC,
     X_OFFSET,
     X_THETA_F,
     X_THETA_R,
@@ -289,7 +291,7 @@ def test_repeatedly_gated_measurement_reinitialises_the_motion_and_never_moves_t
 
 @pytest.mark.parametrize("name", list(CONFIGS))
 def test_update_is_the_textbook_kalman_update(sequence, name):
-    """One step = P- = F P F^T + Q dt; K = P- H^T S^-1; x+ = x- + K (z - H x-); P+ = (I - K H) P- (rel 1e-9).
+    """One step = P- = F P F^T + Q dt + g var g^T; K = P- H^T S^-1; x+ = x- + K (z - H x-); P+ = (I - K H) P- (rel 1e-9).
 
     F and x- come from ekf.predict (tested against finite differences in test_model.py); the rest is
     numpy. This checks eq. (12) and the Joseph form (including its K R K^T term) in the kernel.
@@ -310,6 +312,10 @@ def test_update_is_the_textbook_kalman_update(sequence, name):
     jac = ws[W_F, :n, :n].copy()
     dt = epoch.t - epochs[INJECT - 1].t
     p_pred = jac @ p @ jac.T + np.diag(arrays.process_noise) * dt  # Q is a density
+    if config.options.speed_noise:  # the speed input's noise: g var g^T, var = R_v / 2 (a two-sample mean)
+        gain_v = np.zeros(n)
+        gain_v[: n - 3] = ws[W_VEC, V_SPEED_GAIN, : n - 3]
+        p_pred += 0.5 * arrays.measurement_noise[0] * factors[0] * np.outer(gain_v, gain_v)
     h = np.zeros((2, n))
     h[0, 0] = 1.0
     h[0, 1] = config.vehicle.antenna_x  # the lever arm: z_vy = vy + antenna_x r
@@ -373,6 +379,10 @@ def test_set_noise_keeps_the_state_and_changes_q_and_r(sequence):
         assert changed.config.noise == noise
         np.testing.assert_array_equal(changed.state, reference.state)
         np.testing.assert_array_equal(changed.covariance, reference.covariance)
+        ws, arrays, epoch = work_buffer(), FilterArrays.from_config(DEFAULT), epochs[INJECT]
+        predict(reference.state.copy(), np.zeros(3), arrays.vehicle, arrays.settings, epoch.t - epochs[INJECT - 1].t,
+                epoch.speed, epoch.steering, epoch.steering_rate, ws)
+        g_vy, g_psi = ws[W_VEC, V_SPEED_GAIN, 0], ws[W_VEC, V_SPEED_GAIN, 2]  # dx/dvx: the speed's noise in Q
         a, b = changed.step(epochs[INJECT]), reference.step(epochs[INJECT])
         assert a.status is b.status is StepStatus.UPDATED
         # S = F P F^T + Q dt + R on the measured states (vy, psi): the difference is exactly the change
@@ -383,9 +393,11 @@ def test_set_noise_keeps_the_state_and_changes_q_and_r(sequence):
         d_r = np.array(noise.measurement_noise) * kept - np.array(base.measurement_noise) * factors
         dt = epochs[INJECT].t - epochs[INJECT - 1].t
         vx = epochs[INJECT].speed  # vy's error holds -vx e_psi: R_psi enters S00 and S01 too
-        assert s00_a - s00_b == pytest.approx(d_q[0] * dt + d_r[0] + vx * vx * d_r[1], rel=1e-9, abs=1e-15)
-        assert s11_a - s11_b == pytest.approx(d_r[1], rel=1e-9, abs=1e-15)  # heading's Q is unchanged
-        assert s01_a - s01_b == pytest.approx(-vx * d_r[1], rel=1e-9, abs=1e-15)
+        d_speed = 0.5 * d_r[0]  # the speed's variance is half R_v's (a two-sample mean), through dx/dvx
+        assert s00_a - s00_b == pytest.approx(d_q[0] * dt + d_r[0] + vx * vx * d_r[1] + g_vy * g_vy * d_speed,
+                                              rel=1e-9, abs=1e-15)
+        assert s11_a - s11_b == pytest.approx(d_r[1] + g_psi * g_psi * d_speed, rel=1e-9, abs=1e-15)  # psi's Q kept
+        assert s01_a - s01_b == pytest.approx(-vx * d_r[1] + g_vy * g_psi * d_speed, rel=1e-9, abs=1e-15)
         assert a.cornering_stiffness_front != b.cornering_stiffness_front
 
 

@@ -13,7 +13,20 @@ from scipy.integrate import solve_ivp
 from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, VehicleParams
 from transplanter_ident.ekf.entries import predict
 from transplanter_ident.ekf.joint_ekf import FilterArrays
-from transplanter_ident.ekf.layout import EXACT, W_DE_F, W_DE_R, W_DM_F, W_DM_R, W_E, W_F, W_M
+from transplanter_ident.ekf.layout import (
+    EULER,
+    EXACT,
+    V_SPEED_GAIN,
+    W_DE_F,
+    W_DE_R,
+    W_DE_V,
+    W_DM_F,
+    W_DM_R,
+    W_E,
+    W_F,
+    W_M,
+    W_VEC,
+)
 from transplanter_ident.ekf.model import (
     continuous_matrix,
     discrete_matrices,
@@ -214,6 +227,43 @@ def test_exact_discretisation_matches_scipy_expm():
                 got, want = got[:nd, : nd + 2], want[:nd]
                 err = np.max(np.abs(got - want)) / np.max(np.abs(want))
                 assert err < 1e-12, f"Cf={cf:.0f} Cr={cr:.0f} vx={vx:.2f} dt={dt:.3f}: relative error {err:.2e}"
+
+
+@pytest.mark.parametrize("method", [EXACT, EULER])
+def test_speed_derivative_is_the_central_difference_of_the_discretisation(method: int) -> None:
+    """dE/dvx (carried through the series, for the speed's noise in Q) = (E(vx + h) - E(vx - h)) / 2h, to 1e-6."""
+    rng = np.random.default_rng(5)
+    vehicle = vehicle_array(VEHICLE)
+    for _ in range(20):
+        cf, cr = rng.uniform(2000.0, 30000.0, size=2)
+        vx, dt = rng.uniform(0.5, 3.0), rng.uniform(0.01, 0.5)
+        h = 1e-5 * vx
+        for with_heading in (False, True):
+            size = (3 if with_heading else 2), (3 if with_heading else 2) + 2
+            ends = []
+            for speed in (vx + h, vx - h, vx):
+                ws = work_buffer()
+                discretize(cf, cr, 1.0, 1.0, speed, dt, vehicle, with_heading, method, ws)
+                ends.append(ws[W_E, : size[0], : size[1]].copy())
+            want = (ends[0] - ends[1]) / (2.0 * h)
+            got = ws[W_DE_V, : size[0], : size[1]]
+            assert np.max(np.abs(got - want)) <= 1e-6 * np.max(np.abs(want)), (cf, cr, vx, dt, with_heading)
+
+
+@pytest.mark.parametrize(("discretization", "stiffness", "measurement"), COMBINATIONS)
+def test_prediction_carries_its_speed_derivative(discretization: str, stiffness: str, measurement: str) -> None:
+    """The prediction's d x_{k+1} / d vx (ws[W_VEC, V_SPEED_GAIN]) is the central difference of its x_{k+1}, to 1e-6."""
+    arrays = settings_for(discretization, stiffness, measurement)
+    nd = len(arrays.initial_state) - 3
+    x = arrays.initial_state.copy()
+    x[:2] = (0.05, 0.3)
+    speed, h = 1.7, 1e-5
+    ahead = run_predict(arrays, x, 0.2, speed + h, 0.2, 0.1)[0]
+    behind = run_predict(arrays, x, 0.2, speed - h, 0.2, 0.1)[0]
+    ws = work_buffer()
+    predict(x.copy(), np.zeros(3), arrays.vehicle, arrays.settings, 0.2, speed, 0.2, 0.1, ws)
+    want = (ahead - behind)[:nd] / (2.0 * h)
+    assert np.max(np.abs(ws[W_VEC, V_SPEED_GAIN, :nd] - want)) <= 1e-6 * np.max(np.abs(want))
 
 
 def test_discretisations_agree_at_1ms():

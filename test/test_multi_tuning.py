@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import time
@@ -364,14 +365,12 @@ def _noisier_drive(scenario: str, seed: int) -> tuple[EpochArrays, Truth]:
     return epochs, Truth(result.gnss_time, result.truth_cf, result.truth_cr, nan, nan, nan)
 
 
-@pytest.mark.parametrize("seed", SPAN_SEEDS)
-def test_q_tuned_on_other_drives_within_its_span_keeps_a_held_out_change_drive_as_accurate(seed: int) -> None:
-    """Issue #13: Q/R tuned on the other scenarios (model misfit included) do not cost the held-out drive accuracy.
+@functools.cache
+def span_outcome(seed: int) -> tuple[dict[float, float], dict[float, float]]:
+    """(excess, q_psi) by span (1 decade, the whole box), Q/R tuned on SPAN_SOURCES.
 
-    Searched over the whole box, the NLL on drives the linear model does not fit buys heading
-    and yaw-rate process noise far above the design (measured q_psi 1e-5 vs 1e-8), and the held-out
-    stiffness-drop drive ended 11 and 1.7 points further off than with the defaults (seeds 21, 22).
-    Within the default span (1 decade): at most 0.4 points (Cf and Cr); asserted: <= 1 point.
+    excess: the held-out stiffness-drop drive's final error beyond the defaults' (the worse of Cf and
+    Cr); q_psi: how many decades the heading's process noise rose.
     """
     config = EstimatorParams().config
     sources = [_noisier_drive(name, seed)[0] for name in SPAN_SOURCES]
@@ -383,7 +382,25 @@ def test_q_tuned_on_other_drives_within_its_span_keeps_a_held_out_change_drive_a
         q_psi[span] = noise_to_vector(tuned.noise, ("q_psi",))[0] - noise_to_vector(config.noise, ("q_psi",))[0]
         (cf_default, cf_tuned), (cr_default, cr_tuned) = final_errors([config, tuned], held_out, truth)
         excess[span] = max(abs(cf_tuned) - abs(cf_default), abs(cr_tuned) - abs(cr_default))
+    return excess, q_psi
+
+
+@pytest.mark.parametrize("seed", SPAN_SEEDS)
+def test_q_tuned_on_other_drives_within_its_span_keeps_a_held_out_change_drive_as_accurate(seed: int) -> None:
+    """Issue #13: Q/R tuned on the other scenarios (model misfit included) do not cost the held-out drive accuracy.
+
+    Searched over the whole box, the NLL on drives the linear model does not fit buys heading
+    and yaw-rate process noise far above the design (measured q_psi 1e-5 vs 1e-8), and the held-out
+    stiffness-drop drive ended 11 and 1.7 points further off than with the defaults (seeds 21, 22;
+    with the speed's noise in Q, ekf.speed_noise: 0.06 and 1.7 points). Within the default span
+    (1 decade): at most 0.4 points (Cf and Cr); asserted: <= 1 point.
+    """
+    excess, q_psi = span_outcome(seed)
     assert excess[1.0] <= 0.01, excess
     assert q_psi[1.0] <= 1.0 + 1e-9
-    # the same check fails over the whole box: q_psi rises >= 2 decades and the held-out drive loses > 1 point
-    assert q_psi[math.inf] >= 2.0 and excess[math.inf] > 0.01, (q_psi, excess)
+    assert q_psi[math.inf] >= 2.0, q_psi  # over the whole box the heading's noise runs away
+
+
+def test_q_tuned_over_the_whole_box_costs_a_held_out_drive_accuracy() -> None:
+    """The same check fails over the whole box: on one of SPAN_SEEDS at least, the held-out drive loses > 1 point."""
+    assert max(span_outcome(seed)[0][math.inf] for seed in SPAN_SEEDS) > 0.01

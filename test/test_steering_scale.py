@@ -71,12 +71,13 @@ def _drive_figures(steering_scale: float) -> ValidityFigures:
 def test_with_the_scale_configured_the_estimate_is_right_and_without_it_confidently_wrong() -> None:
     """Sensor 1 % high: configured, valid >= 85 %, <= 5 % of it outside +-2 sigma, median |error| <= 3 %.
 
-    Unconfigured, >= 50 % of the valid epochs are outside +-2 sigma (the test's teeth; measured 61 %).
+    Unconfigured, >= 30 % of the valid epochs are outside +-2 sigma (the test's teeth; measured 61 %, 42 % with
+    the speed's noise in Q).
     """
     configured = _drive_figures(1.0 / SENSOR_SCALE)
     assert configured.valid >= 0.85 and configured.missed <= 0.05 and configured.median <= 0.03, configured
     unconfigured = _drive_figures(1.0)
-    assert unconfigured.missed >= 0.5, unconfigured
+    assert unconfigured.missed >= 0.3, unconfigured
 
 
 @pytest.mark.parametrize("gain", [1.01, 0.99])

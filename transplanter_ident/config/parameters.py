@@ -79,6 +79,7 @@ class FilterOptions:
     saturation_memory: float = 300.0  # s, time constant of that measure
     delay_uncertainty: float = 0.0  # s, 1-sigma of the GNSS delay left out of gnss.delay: the std holds its bias
     steering_scale_uncertainty: float = 0.0  # relative 1-sigma of the steering gain left out of vehicle.steering_scale
+    speed_noise: bool = True  # the GNSS speed, the model's input, is noisy: its variance enters Q through dx/dvx
     noise_adaptation: bool = True  # R raised to what the innovations show (covariance matching), never lowered
     noise_memory: float = 60.0  # s, time constant of that measure
     max_noise_scale: float = 100.0  # largest factor on R it may set

@@ -69,6 +69,7 @@ from transplanter_ident.ekf.layout import (
     S_SATURATION_MEMORY,
     S_SATURATION_PRIOR,
     S_SCALE_UNCERTAINTY,
+    S_SPEED_NOISE,
     X_OFFSET,
     X_PSI,
     X_THETA_F,
@@ -137,6 +138,7 @@ class FilterArrays:
         settings[S_MAX_NOISE_SCALE] = options.max_noise_scale
         settings[S_DELAY_UNCERTAINTY] = options.delay_uncertainty
         settings[S_SCALE_UNCERTAINTY] = options.steering_scale_uncertainty
+        settings[S_SPEED_NOISE] = 1.0 if options.speed_noise else 0.0
         settings[S_DELAY_MEMORY] = options.identifiability_memory
         q, p0 = _state_diagonals(noise, options)
         settings[S_P0_THETA_F], settings[S_P0_THETA_R], settings[S_P0_OFFSET] = p0[-3:]  # recovery.py

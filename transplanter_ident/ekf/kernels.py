@@ -15,11 +15,11 @@ Beyond the paper (DESIGN.md section 7):
 * theta and b are random walks; a surface change (adaptation.py) raises the stiffness's for a while;
 * beyond the linear tire range only the motion states are updated (a Schmidt update);
 * a measurement gated ``max_gated`` times in a row re-initialises the motion states; it never
-  forces a stiffness update.
+  forces a stiffness update;
+* the speed input is the GNSS's, with its noise: Q holds it through dx/dvx (``ekf.speed_noise``).
 
-Alongside the filter runs the *model output* of the paper's Figs. 6-7: the bicycle model
-driven by the measured steering and speed with the stiffness identified so far, open loop
-from the first measured state. It shares the filter's discretisation at every step.
+Alongside the filter runs the *model output* of the paper's Figs. 6-7: the bicycle model driven by the
+measured steering and speed with the stiffness identified so far, open loop from the first measured state.
 
 One compiled step, :func:`ekf_step`, serves the node and the offline drivers
 (:mod:`.joint_ekf`), so online and offline numbers are identical. Array slots are named in
@@ -110,13 +110,16 @@ from transplanter_ident.ekf.layout import (
     S_P0_PSI,
     S_P0_R,
     S_P0_VY,
+    S_SPEED_NOISE,
     V_BACKUP_MODEL,
     V_BACKUP_X,
     V_NEW_MODEL,
     V_NEW_X,
+    V_SPEED_GAIN,
     W_BACKUP_P,
     W_DE_F,
     W_DE_R,
+    W_DE_V,
     W_E,
     W_F,
     W_VEC,
@@ -155,7 +158,7 @@ def make_kernels(heading):
     nf, nr, nb = nd, nd + 1, nd + 2  # theta_f, theta_r, steering offset
     h1 = X_PSI if heading else X_R  # second measured state
     discretize_n = discretize_heading if heading else discretize_yaw_rate
-    propagate_covariance, joseph_update = make_update(n, nd, h1)
+    propagate_covariance, add_speed_noise, joseph_update = make_update(n, nd, h1)
 
     @inline_kernel
     def reset_motion(x, p, model, settings, vy_antenna, psi, yaw_rate):
@@ -214,7 +217,7 @@ def make_kernels(heading):
 
     @inline_kernel
     def predict_n(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):
-        """X <- f(x, u), model <- f(model, u); F = df/dx into ws[W_F].
+        """X <- f(x, u), model <- f(model, u); F = df/dx into ws[W_F], df/dvx into ws[W_VEC, V_SPEED_GAIN].
 
         The wheel angle is the sensor's minus the offset b: a ramp from (mean - b) - rate dt / 2
         (``exact``) or the held mean - b (``euler``), so df/db = -E[:, delta].
@@ -233,11 +236,13 @@ def make_kernels(heading):
             acc = ws[W_E, i, nd] * level + ws[W_E, i, nd + 1] * steering_rate
             acc_f = ws[W_DE_F, i, nd] * level + ws[W_DE_F, i, nd + 1] * steering_rate
             acc_r = ws[W_DE_R, i, nd] * level + ws[W_DE_R, i, nd + 1] * steering_rate
+            acc_v = ws[W_DE_V, i, nd] * level + ws[W_DE_V, i, nd + 1] * steering_rate
             acc_m = acc
             for j in range(nd):
                 acc += ws[W_E, i, j] * x[j]
                 acc_f += ws[W_DE_F, i, j] * x[j]
                 acc_r += ws[W_DE_R, i, j] * x[j]
+                acc_v += ws[W_DE_V, i, j] * x[j]
                 acc_m += ws[W_E, i, j] * model[j]
                 ws[W_F, i, j] = ws[W_E, i, j]
             ws[W_F, i, nf] = acc_f
@@ -245,20 +250,10 @@ def make_kernels(heading):
             ws[W_F, i, nb] = -ws[W_E, i, nd]
             ws[W_VEC, V_NEW_X, i] = acc
             ws[W_VEC, V_NEW_MODEL, i] = acc_m
+            ws[W_VEC, V_SPEED_GAIN, i] = acc_v
         for i in range(nd):
             x[i] = ws[W_VEC, V_NEW_X, i]
             model[i] = ws[W_VEC, V_NEW_MODEL, i]
-
-    @inline_kernel
-    def healthy(x, p, r_model, vy_model, nis):
-        """Finite state and outputs, and a covariance below MAX_VARIANCE (else the step is rolled back)."""
-        for i in range(n):
-            if not _finite(x[i]) or not p[i, i] <= MAX_VARIANCE:
-                return False
-            for j in range(n):
-                if not _finite(p[i, j]):
-                    return False
-        return _finite(r_model) and _finite(vy_model) and _finite(nis)
 
     @called_kernel
     def restart_motion(x, p, model, memo, settings, status, t, vy_antenna, psi, yaw_rate, out):
@@ -271,7 +266,12 @@ def make_kernels(heading):
         write_outputs(x, p, memo, settings, status, yaw_rate, x[X_VY], out)
         return status
 
-    recover = make_recovery(n, nd, MAX_VARIANCE, write_outputs, restart_motion)
+    bounded, recover = make_recovery(n, nd, MAX_VARIANCE, write_outputs, restart_motion)
+
+    @inline_kernel
+    def healthy(x, p, r_model, vy_model, nis):
+        """Finite state and outputs, and a covariance below MAX_VARIANCE (else the step is rolled back)."""
+        return bounded(x, p, 0) and _finite(r_model) and _finite(vy_model) and _finite(nis)
 
     @sized_kernel(runtime=False)
     def step_n(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,
@@ -281,7 +281,7 @@ def make_kernels(heading):
         1. Reject a non-finite epoch or a stamp not after the previous one (nothing changes).
         2. Initialise, or re-initialise after a gap (or a clock step back beyond max_interval), at low
            speed or reversing (motion from z).
-        3. Predict x and the open-loop model over dt (eq. 12), P = F P F^T + Q dt.
+        3. Predict x and the open-loop model over dt (eq. 12), P = F P F^T + Q dt (+ the speed's noise).
         4. Innovation, S and NIS with the lever arm in h(x), the heading error in vy and R as the innovations
            show it (adaptation.noise_scale); the CUSUM test.
         5. Gate; after max_gated gated epochs in a row, re-initialise the motion states.
@@ -338,6 +338,8 @@ def make_kernels(heading):
         scale_f = 1.0 if settings[S_LOG] > 0.5 else x[nf]
         scale_r = 1.0 if settings[S_LOG] > 0.5 else x[nr]
         propagate_covariance(p, q, dt, adapting, settings, (scale_f, scale_r), ws)
+        if settings[S_SPEED_NOISE] > 0.5:  # the interval's speed: the mean of two GNSS samples
+            add_speed_noise(p, 0.5 * r_noise[Z_VY] * noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY), ws)
 
         # 4.
         antenna_x = settings[S_ANTENNA_X]
@@ -351,9 +353,7 @@ def make_kernels(heading):
         s00, s01, s11 = innovation_covariance(heading, hph00, hph01, hph11, r0, r1, speed)
         nis, det = normalized_innovation_squared(e0, e1, s00, s01, s11)  # det NaN: S lost definiteness, roll back
         out[O_E0], out[O_E1] = e0, e1
-        out[O_S00] = s00
-        out[O_S01] = s01
-        out[O_S11] = s11
+        out[O_S00], out[O_S01], out[O_S11] = s00, s01, s11
         out[O_NIS] = nis
         # the NIS against the configured R: the validity's consistency test (noisier sensors, a delay left out)
         c00, c01, c11 = innovation_covariance(heading, hph00, hph01, hph11, r_noise[Z_VY], r_noise[Z_SECOND], speed)

@@ -42,7 +42,8 @@ S_DELAY_UNCERTAINTY = 31  # s, 1-sigma of the GNSS delay left out of gnss.delay 
 S_DELAY_MEMORY = 32  # s, time constant of the delay's adaptation.score_signature (ekf.identifiability_memory)
 S_SATURATION_PRIOR, S_SATURATION_MEMORY = 33, 34  # adaptation.saturation_share, and its measure's memory (s)
 S_SCALE_UNCERTAINTY = 35  # relative 1-sigma of the steering sensor's gain left out of vehicle.steering_scale
-N_SETTINGS = 36
+S_SPEED_NOISE = 36  # 1: the speed input's noise (half R's velocity variance) enters Q through dx/dvx
+N_SETTINGS = 37
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6
@@ -102,10 +103,13 @@ W_E, W_DE_F, W_DE_R, W_M, W_DM_F, W_DM_R = 0, 1, 2, 3, 4, 5
 W_T, W_DT_F, W_DT_R, W_NT, W_NDT_F, W_NDT_R = 6, 7, 8, 9, 10, 11
 # ... and the filter step (kernels.py); W_GAIN rows: K[:, 0], K[:, 1], (HP)[0], (HP)[1]
 W_F, W_TMP, W_GAIN, W_BACKUP_P, W_VEC = 12, 13, 14, 15, 16
-WORK_SLOTS = 17
+# ... and the derivatives with respect to the speed vx (model.py; the speed's noise in Q, kernels.py)
+W_DE_V, W_DM_V, W_DT_V, W_NDT_V = 17, 18, 19, 20
+WORK_SLOTS = 21
 WORK_SIZE = 6
 # rows of ws[W_VEC]
 V_BACKUP_X, V_BACKUP_MODEL, V_NEW_X, V_NEW_MODEL, V_BIAS = 0, 1, 2, 3, 4
+V_SPEED_GAIN = 5  # d x_{k+1} / d vx over the interval (the speed input's noise in Q)
 # rows of ws[W_GAIN]
 G_K0, G_K1, G_HP0, G_HP1 = 0, 1, 2, 3
 

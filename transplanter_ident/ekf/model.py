@@ -16,7 +16,8 @@ delta_rate:
 
 The stiffness derivatives dE/dtheta that form the Jacobian columns of eq. (13) are carried
 exactly through the same recursion (forward-mode differentiation of the series), so the
-exact model has an exact Jacobian. The A23 erratum of eq. (13) does not arise: the Jacobian
+exact model has an exact Jacobian. So is dE/dvx: the speed is a measured input, and its noise
+enters Q through it (kernels.py). The A23 erratum of eq. (13) does not arise: the Jacobian
 follows from M. ``theta`` is ln C (``log``) or C (``linear``).
 
 Everything here is numba-compiled scalar code on preallocated buffers: it is the tuner's hot
@@ -39,14 +40,18 @@ from transplanter_ident.ekf.layout import (
     VEH_MASS,
     W_DE_F,
     W_DE_R,
+    W_DE_V,
     W_DM_F,
     W_DM_R,
+    W_DM_V,
     W_DT_F,
     W_DT_R,
+    W_DT_V,
     W_E,
     W_M,
     W_NDT_F,
     W_NDT_R,
+    W_NDT_V,
     W_NT,
     W_T,
     WORK_SIZE,
@@ -70,7 +75,7 @@ def work_buffer() -> np.ndarray:
 
 @inline_kernel
 def continuous_matrix(cf, cr, vx, vehicle, with_heading, ws):
-    """Fill M (eq. 4) and dM/dCf, dM/dCr over [motion states, delta, d delta/dt] in ws.
+    """Fill M (eq. 4) and dM/dCf, dM/dCr, dM/dvx over [motion states, delta, d delta/dt] in ws.
 
     Size nd + 2 with nd = 3 (vy, r, psi) in heading mode, else 2 (vy, r). The steering angle
     is an extra state whose derivative is the (constant) steering rate, so one matrix
@@ -79,10 +84,12 @@ def continuous_matrix(cf, cr, vx, vehicle, with_heading, ws):
     """
     mass, lf, lr, iz = vehicle[VEH_MASS], vehicle[VEH_LF], vehicle[VEH_LR], vehicle[VEH_IZ]
     nd = N_MOTION_HEADING if with_heading else N_MOTION_YAW_RATE
-    for s in range(W_M, W_DM_R + 1):  # M is (nd + 2) square; the rest of the 5 x 5 slot is not part of it
-        for i in range(nd + 2):
-            for j in range(nd + 2):
-                ws[s, i, j] = 0.0
+    for i in range(nd + 2):  # M is (nd + 2) square; the rest of the slot is not part of it
+        for j in range(nd + 2):
+            ws[W_M, i, j] = 0.0
+            ws[W_DM_F, i, j] = 0.0
+            ws[W_DM_R, i, j] = 0.0
+            ws[W_DM_V, i, j] = 0.0
     u = nd  # steering column
     a = 2.0 / (mass * vx)
     b = 2.0 / (iz * vx)
@@ -103,6 +110,10 @@ def continuous_matrix(cf, cr, vx, vehicle, with_heading, ws):
     ws[W_DM_R, 0, 1] = lr * a
     ws[W_DM_R, 1, 0] = lr * b
     ws[W_DM_R, 1, 1] = -lr * lr * b
+    for i in range(2):  # the tire terms go as 1 / vx; the kinematic -vx r term as vx
+        for j in range(2):
+            ws[W_DM_V, i, j] = -ws[W_M, i, j] / vx
+    ws[W_DM_V, 0, 1] = -1.0 + (cf * lf - cr * lr) * a / vx
     if with_heading:
         ws[W_M, 2, 1] = 1.0
 
@@ -129,8 +140,8 @@ def _make_discretize(nd):
                     ws[out, i, j] = acc
 
     @inline_kernel
-    def product_rule(ws, left, left_f, left_r, right, right_f, right_r, in00, in01, in11):
-        """N = L R and dN = dL R + L dR for both stiffnesses, into W_NT, W_NDT_F, W_NDT_R.
+    def product_rule(ws, left, left_f, left_r, left_v, right, right_f, right_r, right_v, in00, in01, in11):
+        """N = L R and dN = dL R + L dR for both stiffnesses and the speed, into W_NT, W_NDT_F, W_NDT_R, W_NDT_V.
 
         [[in00, in01], [0, in11]] are R's input rows; dR's are zero (they hold no stiffness).
         """
@@ -139,6 +150,8 @@ def _make_discretize(nd):
         mul_top(ws, left, right_f, W_NDT_F, 0.0, 0.0, 0.0, True)
         mul_top(ws, left_r, right, W_NDT_R, in00, in01, in11, False)
         mul_top(ws, left, right_r, W_NDT_R, 0.0, 0.0, 0.0, True)
+        mul_top(ws, left_v, right, W_NDT_V, in00, in01, in11, False)
+        mul_top(ws, left, right_v, W_NDT_V, 0.0, 0.0, 0.0, True)
 
     @sized_kernel
     def discretize_fixed(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, ws):
@@ -153,6 +166,7 @@ def _make_discretize(nd):
                     ws[W_E, i, j] = (1.0 if i == j else 0.0) + ws[W_M, i, j] * dt
                     ws[W_DE_F, i, j] = ws[W_DM_F, i, j] * dt
                     ws[W_DE_R, i, j] = ws[W_DM_R, i, j] * dt
+                    ws[W_DE_V, i, j] = ws[W_DM_V, i, j] * dt
                 ws[W_E, i, nd + 1] = 0.0
             return
         norm = 0.0
@@ -170,32 +184,38 @@ def _make_discretize(nd):
                 ws[W_M, i, j] *= h
                 ws[W_DM_F, i, j] *= h
                 ws[W_DM_R, i, j] *= h
+                ws[W_DM_V, i, j] *= h
                 one = 1.0 if i == j else 0.0
                 ws[W_E, i, j] = one + ws[W_M, i, j]
                 ws[W_DE_F, i, j] = ws[W_DM_F, i, j]
                 ws[W_DE_R, i, j] = ws[W_DM_R, i, j]
+                ws[W_DE_V, i, j] = ws[W_DM_V, i, j]
                 ws[W_T, i, j] = ws[W_M, i, j]
                 ws[W_DT_F, i, j] = ws[W_DM_F, i, j]
                 ws[W_DT_R, i, j] = ws[W_DM_R, i, j]
+                ws[W_DT_V, i, j] = ws[W_DM_V, i, j]
         for order in range(2, TAYLOR_ORDER + 1):  # T_k = T_{k-1} X / k, dT_k = (dT_{k-1} X + T_{k-1} dX) / k
             inv = 1.0 / order
-            product_rule(ws, W_T, W_DT_F, W_DT_R, W_M, W_DM_F, W_DM_R, 0.0, h, 0.0)
+            product_rule(ws, W_T, W_DT_F, W_DT_R, W_DT_V, W_M, W_DM_F, W_DM_R, W_DM_V, 0.0, h, 0.0)
             for i in range(nd):
                 for j in range(size):
                     ws[W_T, i, j] = ws[W_NT, i, j] * inv
                     ws[W_DT_F, i, j] = ws[W_NDT_F, i, j] * inv
                     ws[W_DT_R, i, j] = ws[W_NDT_R, i, j] * inv
+                    ws[W_DT_V, i, j] = ws[W_NDT_V, i, j] * inv
                     ws[W_E, i, j] += ws[W_T, i, j]
                     ws[W_DE_F, i, j] += ws[W_DT_F, i, j]
                     ws[W_DE_R, i, j] += ws[W_DT_R, i, j]
+                    ws[W_DE_V, i, j] += ws[W_DT_V, i, j]
         span = h
         for _ in range(squarings):  # E <- E E, dE <- dE E + E dE
-            product_rule(ws, W_E, W_DE_F, W_DE_R, W_E, W_DE_F, W_DE_R, 1.0, span, 1.0)
+            product_rule(ws, W_E, W_DE_F, W_DE_R, W_DE_V, W_E, W_DE_F, W_DE_R, W_DE_V, 1.0, span, 1.0)
             for i in range(nd):
                 for j in range(size):
                     ws[W_E, i, j] = ws[W_NT, i, j]
                     ws[W_DE_F, i, j] = ws[W_NDT_F, i, j]
                     ws[W_DE_R, i, j] = ws[W_NDT_R, i, j]
+                    ws[W_DE_V, i, j] = ws[W_NDT_V, i, j]
             span *= 2.0
 
     return discretize_fixed
@@ -207,7 +227,7 @@ discretize_heading = _make_discretize(N_MOTION_HEADING)
 
 @entry_kernel
 def discretize(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, with_heading, method, ws):
-    """Discretise eq. (4) over dt: E, dE/dtheta_f, dE/dtheta_r in ws[W_E], ws[W_DE_F], ws[W_DE_R].
+    """Discretise eq. (4) over dt: E, dE/dtheta_f, dE/dtheta_r, dE/dvx in ws[W_E], ws[W_DE_F], ws[W_DE_R], ws[W_DE_V].
 
     x_{k+1} = E[:nd, :nd] x_k + E[:nd, nd] delta_start + E[:nd, nd+1] steering_rate (rows < nd
     valid). ``exact``: E = expm(M dt) (Taylor series, scaling and squaring, derivatives carried

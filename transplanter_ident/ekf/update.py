@@ -2,16 +2,30 @@
 
 :func:`make_update` compiles both for one state size (n states, nd motion states, the second
 measured state h1) so that their loops unroll. F's parameter rows are [0, I] (random walks).
+The speed is an input measured with noise: its variance enters Q as g var g^T, g = dx_{k+1}/dvx.
 """
 
 from __future__ import annotations
 
-from transplanter_ident.ekf.layout import G_HP0, G_HP1, G_K0, G_K1, S_CHANGE_Q, W_F, W_GAIN, W_TMP, X_R, X_VY
+from transplanter_ident.ekf.layout import (
+    G_HP0,
+    G_HP1,
+    G_K0,
+    G_K1,
+    S_CHANGE_Q,
+    V_SPEED_GAIN,
+    W_F,
+    W_GAIN,
+    W_TMP,
+    W_VEC,
+    X_R,
+    X_VY,
+)
 from transplanter_ident.jit import inline_kernel
 
 
 def make_update(n, nd, h1):  # noqa: ANN001, ANN201
-    """(propagate_covariance, joseph_update) for n states, nd of them motion, measuring states 0 and h1."""
+    """(propagate_covariance, add_speed_noise, joseph_update) for n states, nd of them motion, measuring states 0 and h1."""
     nf, nr = nd, nd + 1
 
     @inline_kernel
@@ -44,6 +58,13 @@ def make_update(n, nd, h1):  # noqa: ANN001, ANN201
             p[i, i] += density * dt
 
     @inline_kernel
+    def add_speed_noise(p, speed_variance, ws):
+        """P += g var g^T over the motion states, g = dx_{k+1}/dvx (ws[W_VEC, V_SPEED_GAIN], from predict)."""
+        for i in range(nd):
+            for j in range(nd):
+                p[i, j] += speed_variance * ws[W_VEC, V_SPEED_GAIN, i] * ws[W_VEC, V_SPEED_GAIN, j]
+
+    @inline_kernel
     def joseph_update(x, p, e0, e1, s00, s01, s11, det, antenna_x, motion_only, ws):
         """X += K e; P = (I - K H) P (I - K H)^T + K R K^T with H = [[1, antenna_x, 0...], e_h1].
 
@@ -74,4 +95,4 @@ def make_update(n, nd, h1):  # noqa: ANN001, ANN201
                 p[i, j] = acc
                 p[j, i] = acc
 
-    return propagate_covariance, joseph_update
+    return propagate_covariance, add_speed_noise, joseph_update

@@ -8,7 +8,9 @@ afterwards by :func:`build_config`. Stiffness values are N/rad per tire (the mod
 * ``step30-cw``: a 30 degree step steer clockwise (right), ~1 m/s, in the field (softer tires);
 * ``sine``: +-15 degree sine steer with a 6 s period at 2 m/s, asphalt (identifiable excitation);
 * ``surface-change``: the sine excitation while the stiffness drops part-way (asphalt to field);
-* ``multisine``: a multi-sine steer at 2 m/s (broadband excitation for tuning).
+* ``multisine``: a multi-sine steer at 2 m/s (broadband excitation for tuning);
+* ``field-work``: rows at 2 m/s with +-2 degree path-tracking corrections, and headland U-turns
+  at 1.2 m/s with 30 degrees of steering (its own speed profile: no ``speed`` override).
 """
 
 from __future__ import annotations
@@ -18,7 +20,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 from transplanter_ident.config.parameters import VehicleParams
-from transplanter_ident.sim.signals import StiffnessSchedule, multisine_steering, sine_steering, step_steering
+from transplanter_ident.sim.signals import (
+    StiffnessSchedule,
+    field_work,
+    multisine_steering,
+    sine_steering,
+    step_steering,
+)
 from transplanter_ident.sim.simulator import SimConfig
 
 ASPHALT = StiffnessSchedule(front=(8000.0,), rear=(10000.0,))  # sim default, paper-like magnitudes
@@ -80,6 +88,12 @@ def _multisine(duration: float) -> SimConfig:
                      stiffness=ASPHALT, friction=ASPHALT_FRICTION)
 
 
+def _field_work(duration: float) -> SimConfig:
+    steering, speed = field_work()
+    return SimConfig(duration=duration, steering=steering, speed_profile=speed, stiffness=ASPHALT,
+                     friction=ASPHALT_FRICTION)
+
+
 SCENARIOS: dict[str, Scenario] = {
     "step20-ccw": Scenario("20 deg step steer to the left (counter-clockwise circle), 1 m/s, asphalt",
                            90.0, _step20_ccw),
@@ -94,6 +108,9 @@ SCENARIOS: dict[str, Scenario] = {
                                "at the peaks)", 120.0, _wet_saturating),
     "multisine": Scenario("multi-sine steer (periods 2.5-11 s, |delta| <= 20 deg), 2 m/s, asphalt",
                           120.0, _multisine),
+    "field-work": Scenario("rows at 2 m/s with +-2 deg path-tracking corrections, every 40 s a 10 s headland "
+                           "U-turn at 1.2 m/s with 30 deg of steering, alternating left and right", 300.0,
+                           _field_work),
 }
 
 DEFAULT_SCENARIO = "sine"
@@ -110,6 +127,8 @@ def build_config(name: str, *, duration: float | None = None, seed: int | None =
         raise ValueError(f"unknown scenario {name!r}; choose one of {', '.join(SCENARIOS)}")
     scenario = SCENARIOS[name]
     config = scenario.build(scenario.default_duration if duration is None else float(duration))
+    if speed is not None and config.speed_profile is not None:
+        raise ValueError(f"scenario {name!r} drives its own speed profile; it takes no speed")
     changes: dict[str, object] = {}
     for key, value in (("seed", seed), ("speed", speed), ("tire", tire), ("friction", friction),
                        ("gnss_rate", gnss_rate), ("steering_rate", steering_rate),

@@ -1,7 +1,9 @@
-"""Steering signals and stiffness schedules of the simulated drives.
+"""Steering signals, speed profiles and stiffness schedules of the simulated drives.
 
-Steering: sine, step with a ramp (the paper's test), and multisine. The stiffness schedule
-switches Cf and Cr at given times (a surface change).
+Steering: sine, step with a ramp (the paper's test), and multisine. Field work pairs a steering
+signal with a speed profile: rows with small path-tracking corrections, and headland U-turns
+at a lower speed and a large steering angle. The stiffness schedule switches Cf and Cr at given
+times (a surface change).
 """
 
 from __future__ import annotations
@@ -84,6 +86,69 @@ def multisine_steering(amplitude: float, periods: Sequence[float], seed: int = 0
         require_positive("period", period)
     phases = np.random.default_rng(seed).uniform(0.0, 2.0 * math.pi, size=len(periods))
     return MultisineSteering(float(amplitude), tuple(float(p) for p in periods), tuple(phases.tolist()))
+
+
+@dataclass(frozen=True)
+class Headlands:
+    """Rows of ``row_time`` s, each followed by a U-turn of ``turn_time`` s; ramps of ``ramp`` s in and out.
+
+    :meth:`turning` is 0 in a row, 1 in a turn, linear in the ramps; turns alternate left and right.
+    """
+
+    row_time: float = 40.0
+    turn_time: float = 10.0
+    ramp: float = 2.0
+
+    def turning(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(share of the turn, +1 for a left turn / -1 for a right one) at times ``t``."""
+        t = np.asarray(t, dtype=float)
+        period = self.row_time + self.turn_time
+        index = np.floor(t / period)
+        into = t - index * period
+        share = np.minimum(np.clip((into - self.row_time) / self.ramp, 0.0, 1.0),
+                           np.clip((period - into) / self.ramp, 0.0, 1.0))
+        return share, np.where(index % 2 == 0, 1.0, -1.0)
+
+
+@dataclass(frozen=True)
+class FieldWorkSteering:
+    """Path-tracking corrections (``tracking``, rad) in the rows, +-``lock`` (rad) in the headland turns."""
+
+    headlands: Headlands
+    tracking: Signal
+    lock: float
+
+    def __call__(self, t: np.ndarray) -> np.ndarray:
+        share, side = self.headlands.turning(t)
+        return (1.0 - share) * self.tracking(t) + share * side * self.lock
+
+
+@dataclass(frozen=True)
+class FieldWorkSpeed:
+    """``row_speed`` in the rows, ``turn_speed`` in the headland turns (m/s), linear in between."""
+
+    headlands: Headlands
+    row_speed: float
+    turn_speed: float
+
+    def __call__(self, t: np.ndarray) -> np.ndarray:
+        share, _ = self.headlands.turning(t)
+        return self.row_speed + (self.turn_speed - self.row_speed) * share
+
+
+def field_work(row_speed: float = 2.0, turn_speed: float = 1.2, lock: float = math.radians(30.0),
+               tracking: float = math.radians(2.0), headlands: Headlands | None = None,
+               seed: int = 0) -> tuple[Signal, Signal]:
+    """(steering, speed profile) of field work: rows with a +-``tracking`` multisine, U-turns at ``lock``."""
+    for name, value in (("row_speed", row_speed), ("turn_speed", turn_speed), ("lock", lock)):
+        require_positive(name, value)
+    headlands = headlands or Headlands()
+    for name, value in (("row_time", headlands.row_time), ("turn_time", headlands.turn_time),
+                        ("ramp", headlands.ramp)):
+        require_positive(name, value)
+    corrections = multisine_steering(tracking, (4.0, 7.0, 11.0, 17.0), seed=seed)
+    return (FieldWorkSteering(headlands, corrections, float(lock)),
+            FieldWorkSpeed(headlands, float(row_speed), float(turn_speed)))
 
 
 @dataclass(frozen=True)
