@@ -111,29 +111,27 @@ class Headlands:
 
 
 @dataclass(frozen=True)
-class FieldWorkSteering:
-    """Path-tracking corrections (``tracking``, rad) in the rows, +-``lock`` (rad) in the headland turns."""
+class Constant:
+    """A constant signal."""
 
-    headlands: Headlands
-    tracking: Signal
-    lock: float
+    value: float
 
     def __call__(self, t: np.ndarray) -> np.ndarray:
-        share, side = self.headlands.turning(t)
-        return (1.0 - share) * self.tracking(t) + share * side * self.lock
+        return np.full(np.shape(t), self.value)
 
 
 @dataclass(frozen=True)
-class FieldWorkSpeed:
-    """``row_speed`` in the rows, ``turn_speed`` in the headland turns (m/s), linear in between."""
+class HeadlandBlend:
+    """``row(t)`` in the rows, ``turn`` in the headland turns (signed by the turn's side if ``sided``), linear between."""
 
     headlands: Headlands
-    row_speed: float
-    turn_speed: float
+    row: Signal
+    turn: float
+    sided: bool
 
     def __call__(self, t: np.ndarray) -> np.ndarray:
-        share, _ = self.headlands.turning(t)
-        return self.row_speed + (self.turn_speed - self.row_speed) * share
+        share, side = self.headlands.turning(t)
+        return (1.0 - share) * self.row(t) + share * (side if self.sided else 1.0) * self.turn
 
 
 def field_work(row_speed: float = 2.0, turn_speed: float = 1.2, lock: float = math.radians(30.0),
@@ -147,8 +145,8 @@ def field_work(row_speed: float = 2.0, turn_speed: float = 1.2, lock: float = ma
                         ("ramp", headlands.ramp)):
         require_positive(name, value)
     corrections = multisine_steering(tracking, (4.0, 7.0, 11.0, 17.0), seed=seed)
-    return (FieldWorkSteering(headlands, corrections, float(lock)),
-            FieldWorkSpeed(headlands, float(row_speed), float(turn_speed)))
+    return (HeadlandBlend(headlands, corrections, float(lock), sided=True),
+            HeadlandBlend(headlands, Constant(float(row_speed)), float(turn_speed), sided=False))
 
 
 @dataclass(frozen=True)
