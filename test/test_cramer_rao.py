@@ -80,7 +80,7 @@ def discrete_ramp_column(vehicle: VehicleParams, cf: float, cr: float, speed: fl
     from transplanter_ident.ekf.model import discretize
 
     ws = work_buffer()
-    discretize(cf, cr, 1.0, 1.0, speed, dt, vehicle_array(vehicle), True, EXACT, ws)
+    discretize(cf, cr, 1.0, 1.0, speed, dt, vehicle_array(vehicle), True, EXACT, False, ws)
     return ws[W_E, :3, 4].copy()
 
 

@@ -217,7 +217,7 @@ def test_exact_discretisation_matches_scipy_expm():
         for with_heading in (False, True):
             nd = 3 if with_heading else 2
             ws = work_buffer()
-            discretize(cf, cr, 1.0, 1.0, vx, dt, vehicle, with_heading, EXACT, ws)
+            discretize(cf, cr, 1.0, 1.0, vx, dt, vehicle, with_heading, EXACT, False, ws)
             m, dm_f, dm_r = augmented(cf, cr, vx, with_heading)
             expected, d_front = scipy.linalg.expm_frechet(m * dt, dm_f * dt)
             d_rear = scipy.linalg.expm_frechet(m * dt, dm_r * dt, compute_expm=False)
@@ -243,7 +243,7 @@ def test_speed_derivative_is_the_central_difference_of_the_discretisation(method
             ends = []
             for speed in (vx + h, vx - h, vx):
                 ws = work_buffer()
-                discretize(cf, cr, 1.0, 1.0, speed, dt, vehicle, with_heading, method, ws)
+                discretize(cf, cr, 1.0, 1.0, speed, dt, vehicle, with_heading, method, True, ws)
                 ends.append(ws[W_E, : size[0], : size[1]].copy())
             want = (ends[0] - ends[1]) / (2.0 * h)
             got = ws[W_DE_V, : size[0], : size[1]]

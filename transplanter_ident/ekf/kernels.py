@@ -225,7 +225,8 @@ def make_kernels(heading):
         cf, dcf = stiffness(x, settings, 0)
         cr, dcr = stiffness(x, settings, 1)
         method = int(settings[S_METHOD])
-        discretize_n(cf, cr, dcf, dcr, speed, dt, vehicle, method, ws)
+        speed_noise = settings[S_SPEED_NOISE] > 0.5  # dx/dvx only when the speed's noise enters Q
+        discretize_n(cf, cr, dcf, dcr, speed, dt, vehicle, method, speed_noise, ws)
         level = steering - x[nb]
         if method != EULER:
             level -= 0.5 * dt * steering_rate
@@ -248,9 +249,8 @@ def make_kernels(heading):
             ws[W_F, i, nf] = acc_f
             ws[W_F, i, nr] = acc_r
             ws[W_F, i, nb] = -ws[W_E, i, nd]
-            ws[W_VEC, V_NEW_X, i] = acc
-            ws[W_VEC, V_NEW_MODEL, i] = acc_m
-            ws[W_VEC, V_SPEED_GAIN, i] = acc_v
+            ws[W_VEC, V_NEW_X, i], ws[W_VEC, V_NEW_MODEL, i] = acc, acc_m
+            ws[W_VEC, V_SPEED_GAIN, i] = acc_v if speed_noise else 0.0
         for i in range(nd):
             x[i] = ws[W_VEC, V_NEW_X, i]
             model[i] = ws[W_VEC, V_NEW_MODEL, i]

@@ -140,8 +140,8 @@ def _make_discretize(nd):
                     ws[out, i, j] = acc
 
     @inline_kernel
-    def product_rule(ws, left, left_f, left_r, left_v, right, right_f, right_r, right_v, in00, in01, in11):
-        """N = L R and dN = dL R + L dR for both stiffnesses and the speed, into W_NT, W_NDT_F, W_NDT_R, W_NDT_V.
+    def product_rule(ws, left, left_f, left_r, left_v, right, right_f, right_r, right_v, in00, in01, in11, with_v):
+        """N = L R and dN = dL R + L dR for both stiffnesses (and the speed if ``with_v``) into W_NT, W_NDT_*.
 
         [[in00, in01], [0, in11]] are R's input rows; dR's are zero (they hold no stiffness).
         """
@@ -150,11 +150,12 @@ def _make_discretize(nd):
         mul_top(ws, left, right_f, W_NDT_F, 0.0, 0.0, 0.0, True)
         mul_top(ws, left_r, right, W_NDT_R, in00, in01, in11, False)
         mul_top(ws, left, right_r, W_NDT_R, 0.0, 0.0, 0.0, True)
-        mul_top(ws, left_v, right, W_NDT_V, in00, in01, in11, False)
-        mul_top(ws, left, right_v, W_NDT_V, 0.0, 0.0, 0.0, True)
+        if with_v:
+            mul_top(ws, left_v, right, W_NDT_V, in00, in01, in11, False)
+            mul_top(ws, left, right_v, W_NDT_V, 0.0, 0.0, 0.0, True)
 
     @sized_kernel
-    def discretize_fixed(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, ws):
+    def discretize_fixed(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, with_v, ws):
         continuous_matrix(cf, cr, vx, vehicle, nd == N_MOTION_HEADING, ws)
         for i in range(nd):
             for j in range(size):
@@ -196,7 +197,7 @@ def _make_discretize(nd):
                 ws[W_DT_V, i, j] = ws[W_DM_V, i, j]
         for order in range(2, TAYLOR_ORDER + 1):  # T_k = T_{k-1} X / k, dT_k = (dT_{k-1} X + T_{k-1} dX) / k
             inv = 1.0 / order
-            product_rule(ws, W_T, W_DT_F, W_DT_R, W_DT_V, W_M, W_DM_F, W_DM_R, W_DM_V, 0.0, h, 0.0)
+            product_rule(ws, W_T, W_DT_F, W_DT_R, W_DT_V, W_M, W_DM_F, W_DM_R, W_DM_V, 0.0, h, 0.0, with_v)
             for i in range(nd):
                 for j in range(size):
                     ws[W_T, i, j] = ws[W_NT, i, j] * inv
@@ -209,7 +210,7 @@ def _make_discretize(nd):
                     ws[W_DE_V, i, j] += ws[W_DT_V, i, j]
         span = h
         for _ in range(squarings):  # E <- E E, dE <- dE E + E dE
-            product_rule(ws, W_E, W_DE_F, W_DE_R, W_DE_V, W_E, W_DE_F, W_DE_R, W_DE_V, 1.0, span, 1.0)
+            product_rule(ws, W_E, W_DE_F, W_DE_R, W_DE_V, W_E, W_DE_F, W_DE_R, W_DE_V, 1.0, span, 1.0, with_v)
             for i in range(nd):
                 for j in range(size):
                     ws[W_E, i, j] = ws[W_NT, i, j]
@@ -226,18 +227,18 @@ discretize_heading = _make_discretize(N_MOTION_HEADING)
 
 
 @entry_kernel
-def discretize(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, with_heading, method, ws):
+def discretize(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, with_heading, method, with_v, ws):
     """Discretise eq. (4) over dt: E, dE/dtheta_f, dE/dtheta_r, dE/dvx in ws[W_E], ws[W_DE_F], ws[W_DE_R], ws[W_DE_V].
 
     x_{k+1} = E[:nd, :nd] x_k + E[:nd, nd] delta_start + E[:nd, nd+1] steering_rate (rows < nd
     valid). ``exact``: E = expm(M dt) (Taylor series, scaling and squaring, derivatives carried
-    through both); ``euler``: E = I + M dt (eq. 10; the steering-rate column is then 0).
-    ws: :func:`work_buffer`.
+    through both); ``euler``: E = I + M dt (eq. 10; the steering-rate column is then 0). dE/dvx only
+    ``with_v`` (the speed's noise in Q); else ws[W_DE_V] holds nothing meaningful. ws: :func:`work_buffer`.
     """
     if with_heading:
-        discretize_heading(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, ws)
+        discretize_heading(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, with_v, ws)
     else:
-        discretize_yaw_rate(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, ws)
+        discretize_yaw_rate(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, with_v, ws)
 
 
 def discrete_matrices(
@@ -254,7 +255,7 @@ def discrete_matrices(
     ws = work_buffer()
     code = EXACT if method == "exact" else EULER
     discretize(cornering_stiffness_front, cornering_stiffness_rear, 1.0, 1.0, speed, dt,
-               vehicle_array(vehicle), with_heading, code, ws)
+               vehicle_array(vehicle), with_heading, code, False, ws)
     nd = N_MOTION_HEADING if with_heading else N_MOTION_YAW_RATE
     return ws[W_E, :nd, :nd].copy(), ws[W_E, :nd, nd].copy()
 
