@@ -71,8 +71,9 @@ class FilterOptions:
     process_noise_units: str = "per_second"  # Q as a spectral density, or per GNSS step (old files)
     process_noise_step: float = 0.2  # s: the GNSS interval per-step Q values were tuned for
     linear_range_check: bool = True  # hold the stiffness where the tire leaves its linear range
-    max_slip_angle: float = 0.05  # rad: beyond it the tire is taken as nonlinear (stiffness held)
+    max_slip_angle: float = 0.15  # rad: beyond it the tire is taken as nonlinear (stiffness held), whatever its C
     max_lateral_acceleration: float = 2.0  # m/s^2: likewise
+    max_tire_utilisation: float = 0.9  # likewise beyond C alpha > this x min_friction x Fz (0: off)
     min_friction: float = 0.3  # lowest friction expected (wet field): the stiffness std holds the bias there; 0 off
     saturation_correction: bool = False  # report Cf, Cr corrected by that bias (min_friction = the field's, if known)
     saturation_prior: float = 0.5  # 1-sigma prior of the saturation the innovations measure (1: min_friction); 0 off
@@ -119,6 +120,7 @@ class FilterOptions:
                                                                                    "delay_uncertainty",
                                                                                    "steering_scale_uncertainty",
                                                                                    "saturation_prior",
+                                                                                   "max_tire_utilisation",
                                                                                    "relinearization_window"))
         if not (math.isfinite(self.relinearization_threshold) and self.relinearization_threshold > 0.0):
             raise ValueError(f"ekf.relinearization_threshold must be > 0, got {self.relinearization_threshold!r}")

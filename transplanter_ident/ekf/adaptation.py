@@ -1,7 +1,9 @@
 """Beyond the paper: the tire's linear range and stiffness changes (DESIGN.md section 7).
 
-* :func:`beyond_linear_range`: whether the slip angles (eq. 3) or the lateral acceleration have
-  left the range where the linear tire of eq. 2 holds; the step then updates only the motion;
+* :func:`beyond_linear_range`: whether the tire forces (the stiffness times the slip angles of
+  eq. 3, against what a tire at ``min_friction`` could give), the slip angles themselves or the
+  lateral acceleration have left the range where the linear tire of eq. 2 holds; the step then
+  updates only the motion;
 * :func:`detect_change`: a CUSUM test on the normalised innovation squared for a change of the
   innovation variance (a new surface); an alarm raises the stiffness random walk for a while;
 * :func:`propagate_tire_bias`: the bias the linear tire takes if the surface is as slippery as
@@ -51,9 +53,11 @@ from transplanter_ident.ekf.layout import (
     S_DELAY_MEMORY,
     S_DELAY_UNCERTAINTY,
     S_LINEAR_RANGE,
+    S_LOG,
     S_MAX_LAT_ACC,
     S_MAX_NOISE_SCALE,
     S_MAX_SLIP,
+    S_MAX_UTILISATION,
     S_MIN_FRICTION,
     S_NOISE_ADAPTATION,
     S_NOISE_MEMORY,
@@ -75,12 +79,15 @@ from transplanter_ident.jit import inline_kernel
 
 
 @inline_kernel
-def beyond_linear_range(vehicle, settings, speed, steering, offset, vy, yaw_rate, out):
-    """Whether the slip angles or the lateral acceleration leave the linear tire's range.
+def beyond_linear_range(vehicle, settings, speed, steering, offset, vy, yaw_rate, theta_f, theta_r, out):
+    """Whether the tire forces, the slip angles or the lateral acceleration leave the linear tire's range.
 
     From the last estimate of vy and r (which the measurements keep close to the truth), not
     from the prediction (a wrong stiffness must not make the tires look saturated) nor from
-    the differenced yaw rate (its noise would select the epochs).
+    the differenced yaw rate (its noise would select the epochs). The force test is the stiffness
+    (of theta_f, theta_r) times the slip against ``max_tire_utilisation`` of what the tire gives at
+    ``min_friction`` (:func:`friction_utilisation`): the linear range in slip is mu Fz / C, wider
+    for a soft tire than for a stiff one, so no one slip angle bounds it for every tire.
     """
     lf, lr = vehicle[VEH_LF], vehicle[VEH_LR]
     slip_f = steering - offset - (vy + lf * yaw_rate) / speed
@@ -92,7 +99,13 @@ def beyond_linear_range(vehicle, settings, speed, steering, offset, vy, yaw_rate
     if settings[S_LINEAR_RANGE] < 0.5:
         return False
     limit = settings[S_MAX_SLIP]
-    return abs(slip_f) > limit or abs(slip_r) > limit or abs(lateral_acceleration) > settings[S_MAX_LAT_ACC]
+    if abs(slip_f) > limit or abs(slip_r) > limit or abs(lateral_acceleration) > settings[S_MAX_LAT_ACC]:
+        return True
+    log_state = settings[S_LOG] > 0.5
+    cf, cr = (math.exp(theta_f), math.exp(theta_r)) if log_state else (theta_f, theta_r)
+    most = settings[S_MAX_UTILISATION]
+    return most > 0.0 and max(friction_utilisation(settings, vehicle, slip_f, cf, True),
+                              friction_utilisation(settings, vehicle, slip_r, cr, False)) > most
 
 
 @inline_kernel
@@ -137,6 +150,20 @@ GRAVITY = 9.81
 
 
 @inline_kernel
+def friction_utilisation(settings, vehicle, slip, stiffness, front):
+    """The normalised slip |C alpha| / (mu Fz) of one tire: its linear force over its limit at ``min_friction``.
+
+    Fz is the static load of one tire of the axle. 0 when mu <= 0 (off).
+    """
+    mu = settings[S_MIN_FRICTION]
+    if not mu > 0.0:
+        return 0.0
+    lf, lr = vehicle[VEH_LF], vehicle[VEH_LR]
+    load = 0.5 * vehicle[VEH_MASS] * GRAVITY * (lr if front else lf) / (lf + lr)
+    return abs(stiffness * slip) / (mu * load)
+
+
+@inline_kernel
 def saturation_deficit(settings, vehicle, slip, stiffness, front):
     """ln(F / (C alpha)) of one tire whose force is mu Fz tanh(C alpha / (mu Fz)), mu = ``min_friction``.
 
@@ -144,12 +171,7 @@ def saturation_deficit(settings, vehicle, slip, stiffness, front):
     static load of one tire of the axle). It is ~ -x^2 / 3 at the normalised slip x = C alpha / (mu Fz):
     the linear tire overstates the force by 4 % at a third of the friction limit. 0 when mu <= 0 (off).
     """
-    mu = settings[S_MIN_FRICTION]
-    if not mu > 0.0:
-        return 0.0
-    lf, lr = vehicle[VEH_LF], vehicle[VEH_LR]
-    load = 0.5 * vehicle[VEH_MASS] * GRAVITY * (lr if front else lf) / (lf + lr)
-    x = min(abs(stiffness * slip) / (mu * load), 20.0)
+    x = min(friction_utilisation(settings, vehicle, slip, stiffness, front), 20.0)
     if x < 1.0e-4:
         return -x * x / 3.0
     return math.log(math.tanh(x) / x)

@@ -53,6 +53,7 @@ from transplanter_ident.ekf.layout import (
     S_MAX_LAT_ACC,
     S_MAX_NOISE_SCALE,
     S_MAX_SLIP,
+    S_MAX_UTILISATION,
     S_METHOD,
     S_MIN_FRICTION,
     S_MIN_SPEED,
@@ -121,6 +122,7 @@ class FilterArrays:
         settings[S_ANTENNA_X] = config.vehicle.antenna_x
         settings[S_MAX_SLIP] = options.max_slip_angle
         settings[S_MAX_LAT_ACC] = options.max_lateral_acceleration
+        settings[S_MAX_UTILISATION] = options.max_tire_utilisation
         settings[S_SATURATION_PRIOR] = options.saturation_prior
         settings[S_SATURATION_MEMORY] = options.saturation_memory
         settings[S_MIN_FRICTION] = options.min_friction

@@ -326,7 +326,7 @@ def make_kernels(heading):
         # the tire's range from the last motion estimate, once both stiffnesses are known (see adaptation.py)
         log_state = settings[S_LOG] > 0.5
         wheel = steering - 0.5 * dt * steering_rate  # at the interval's start, as x (the ramp of predict_n)
-        nonlinear = (beyond_linear_range(vehicle, settings, speed, wheel, x[nb], x[X_VY], x[X_R], out)
+        nonlinear = (beyond_linear_range(vehicle, settings, speed, wheel, x[nb], x[X_VY], x[X_R], x[nf], x[nr], out)
                      and known_to(x[nf], p[nf, nf], log_state) and known_to(x[nr], p[nr, nr], log_state))
 
         # 3.

@@ -43,7 +43,8 @@ S_DELAY_MEMORY = 32  # s, time constant of the delay's adaptation.score_signatur
 S_SATURATION_PRIOR, S_SATURATION_MEMORY = 33, 34  # adaptation.saturation_share, and its measure's memory (s)
 S_SCALE_UNCERTAINTY = 35  # relative 1-sigma of the steering sensor's gain left out of vehicle.steering_scale
 S_SPEED_NOISE = 36  # 1: the speed input's noise (half R's velocity variance) enters Q through dx/dvx
-N_SETTINGS = 37
+S_MAX_UTILISATION = 37  # the linear range's force limit, a fraction of mu Fz at min_friction (adaptation.py)
+N_SETTINGS = 38
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6
