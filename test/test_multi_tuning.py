@@ -390,15 +390,18 @@ def test_q_tuned_on_other_drives_within_its_span_keeps_a_held_out_change_drive_a
     """Issue #13: Q/R tuned on the other scenarios (model misfit included) do not cost the held-out drive accuracy.
 
     Searched over the whole box, the NLL on drives the linear model does not fit buys heading
-    and yaw-rate process noise far above the design (measured q_psi 1e-5 vs 1e-8), and the held-out
+    and yaw-rate process noise far above the design (measured q_psi 1e-5 vs 1e-8; with the linear
+    range a force, ekf.max_tire_utilisation, +1.76 and +2.86 decades on seeds 21 and 22, against
+    +0.09 and +0.40 within the span; asserted: >= 1.5, beyond the span's 1), and the held-out
     stiffness-drop drive ended 11 and 1.7 points further off than with the defaults (seeds 21, 22;
-    with the speed's noise in Q, ekf.speed_noise: 0.06 and 1.7 points). Within the default span
-    (1 decade): at most 0.4 points (Cf and Cr); asserted: <= 1 point.
+    with the speed's noise in Q, ekf.speed_noise: 0.06 and 1.7 points; with the linear range a
+    force: 0.17 and 1.3). Within the default span (1 decade): at most 0.5 points (Cf and Cr; 0.08
+    and 0.52 now); asserted: <= 1 point.
     """
     excess, q_psi = span_outcome(seed)
     assert excess[1.0] <= 0.01, excess
     assert q_psi[1.0] <= 1.0 + 1e-9
-    assert q_psi[math.inf] >= 2.0, q_psi  # over the whole box the heading's noise runs away
+    assert q_psi[math.inf] >= 1.5, q_psi  # over the whole box the heading's noise runs away
 
 
 def test_q_tuned_over_the_whole_box_costs_a_held_out_drive_accuracy() -> None:
