@@ -12,7 +12,8 @@ of these hold over a window of data time (the same decision online and offline):
   not autocorrelated (an unconfigured GNSS delay, a wrong lever arm or a wrong R show there);
 * plausible: the heading is not a course over ground (then vy is zero by construction while the
   vehicle turns), and the GNSS velocity agrees with the heading (an ENU/NED mix-up implies a
-  sideslip no transplanter has, or a course that turns against the heading);
+  sideslip at the CG no transplanter has, or a course that turns against the heading; an antenna
+  ahead of the CG adds antenna_x r to its vy, which is no sideslip);
 * trusted input (issue #14): at most ``max_suspect_fraction`` of the window's epochs follow a
   rejected input sample (:attr:`Sample.rejected`: the samples and epochs rejected since the
   previous epoch, in the order they were processed: the same online and offline) or were gated,
@@ -99,10 +100,12 @@ class ValidityMonitor:
     its length at any GNSS rate.
     """
 
-    def __init__(self, settings: ValiditySettings, bounds: tuple[float, float], lever: float) -> None:
+    def __init__(self, settings: ValiditySettings, bounds: tuple[float, float], lever: float,
+                 antenna_x: float = 0.0) -> None:
         self.settings = settings
         self.bounds = bounds
         self.lever = lever  # lr + antenna_x: how far behind the antenna the rear axle is
+        self.antenna_x = antenna_x  # m, the antenna ahead of the CG: its vy holds antenna_x r besides the sideslip
         self.reset()
 
     def reset(self) -> None:
@@ -175,7 +178,8 @@ class ValidityMonitor:
         reasons = []
         predicted = [w for w in window if w.status in PREDICTED and w.speed > 0.0]
         if len(predicted) >= 5:
-            sideslip = sorted(abs(w.antenna_lateral_velocity) / w.speed for w in predicted)[len(predicted) // 2]
+            sideslip = sorted(abs(w.antenna_lateral_velocity - self.antenna_x * w.yaw_rate) / w.speed
+                              for w in predicted)[len(predicted) // 2]  # at the CG
             if sideslip > self.settings.max_sideslip:
                 reasons.append(f"implausible sideslip (median |vy/vx| {sideslip:.2f}): GNSS velocity and heading "
                                "disagree; check frames.velocity / frames.heading (ENU or NED)")
@@ -273,7 +277,8 @@ def sample_of(epoch: Epoch, row: np.ndarray, rejected: int = 0) -> Sample:
 
 def monitor_for(config: EstimatorConfig, settings: ValiditySettings) -> ValidityMonitor:
     """A monitor with the filter's stiffness bounds and the lever arm of the rear axle to the antenna."""
-    return ValidityMonitor(settings, config.options.stiffness_bounds, config.vehicle.lr + config.vehicle.antenna_x)
+    vehicle = config.vehicle
+    return ValidityMonitor(settings, config.options.stiffness_bounds, vehicle.lr + vehicle.antenna_x, vehicle.antenna_x)
 
 
 def decide_sequence(config: EstimatorConfig, settings: ValiditySettings, epochs: EpochArrays,
@@ -285,7 +290,8 @@ def decide_sequence(config: EstimatorConfig, settings: ValiditySettings, epochs:
     """
     monitor = monitor_for(config, settings)
     counts = rejected if rejected is not None else [0] * len(epochs)
-    valid = decide_batch(settings, monitor.bounds, monitor.lever, RECHECK, epochs, outputs, counts, DISTRUSTED)
+    valid = decide_batch(settings, monitor.bounds, monitor.lever, RECHECK, epochs, outputs, counts, DISTRUSTED,
+                         monitor.antenna_x)
     if valid is not None:
         return valid
     return np.array([monitor.step(sample_of(epochs[i], outputs[i], counts[i])).valid for i in range(len(epochs))],

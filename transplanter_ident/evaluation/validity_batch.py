@@ -62,11 +62,12 @@ def delay_shifts(delay, std, sensitivity, rel_std, max_shift: float):  # noqa: A
 
 def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever: float, recheck: float,
                  epochs: EpochArrays, outputs: np.ndarray, rejected: Sequence[int],
-                 distrusted: Iterable[StepStatus]) -> np.ndarray | None:
+                 distrusted: Iterable[StepStatus], antenna_x: float = 0.0) -> np.ndarray | None:
     """The monitor's ``valid`` for every epoch, or None when the times do not strictly increase.
 
     ``rejected``: per epoch, the samples rejected since the previous one (Sample.rejected);
-    ``distrusted``: the statuses that make an epoch suspect (validity.DISTRUSTED).
+    ``distrusted``: the statuses that make an epoch suspect (validity.DISTRUSTED); ``antenna_x``: the
+    antenna ahead of the CG (the sideslip check takes vy at the CG, ValidityMonitor.antenna_x).
     """
     t = np.ascontiguousarray(epochs.t, dtype=np.float64)
     n = len(t)
@@ -98,7 +99,7 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
         s00 = outputs[:, O_S00]
         whitened = np.divide(outputs[:, O_E0], np.sqrt(np.where(s00 > 0.0, s00, 1.0)), where=s00 > 0.0,
                              out=np.zeros(n))
-        sideslip = np.abs(vy) / speed
+        sideslip = np.abs(vy - antenna_x * r) / speed  # at the CG
     nis = np.ascontiguousarray(outputs[:, O_NIS_CONFIGURED], dtype=np.float64)
     plaus = np.flatnonzero(predicted & (speed > 0.0))  # the plausibility checks' epochs
     consist = np.flatnonzero(predicted & np.isfinite(nis))  # the NIS and autocorrelation checks' epochs
