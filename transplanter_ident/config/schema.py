@@ -232,7 +232,7 @@ SCHEMA: tuple[Param, ...] = (
     _float("ekf.max_interval", 2.0, "s", "a longer GNSS gap re-initialises the motion states", 0.001, 3600.0),
     # the tire's linear range and stiffness changes (DESIGN.md section 7)
     _bool("ekf.linear_range_check", True, "hold the stiffness and offset (update the motion only) where the "
-          "measured slip angle or lateral acceleration leaves the linear tire range"),
+          "tire's linear force, the measured slip angle or the lateral acceleration leaves the linear tire range"),
     _float("ekf.max_slip_angle", 0.15, "rad", "front or rear slip angle beyond which the tire counts as "
            "nonlinear whatever its stiffness (the small-angle slip of eq. 3; ekf.max_tire_utilisation bounds the "
            "force)", 1.0e-4, 1.0),
@@ -241,8 +241,8 @@ SCHEMA: tuple[Param, ...] = (
     _float("ekf.max_tire_utilisation", 0.9, "", "a tire counts as nonlinear where its linear force, the "
            "estimated stiffness times its slip angle, exceeds this fraction of what it gives on the most slippery "
            "field (ekf.min_friction times its static load): the linear range in slip is mu Fz / C, so a soft tire "
-           "slips further in it and a stiff one less (0.9: 0.043 rad on a front tire of 8000 N/rad and 0.061 rad on a rear one of 10000 N/rad of the default vehicle); "
-           "0, or ekf.min_friction 0: off", 0.0, 100.0),
+           "slips further in it and a stiff one less (0.9: 0.043 rad on a front tire of 8000 N/rad and 0.061 "
+           "rad on a rear one of 10000 N/rad of the default vehicle); 0, or ekf.min_friction 0: off", 0.0, 100.0),
     _float("ekf.min_friction", 0.3, "", "friction coefficient of the most slippery surface expected (a wet "
            "field ~0.3): the reported Cf, Cr std include the bias a linear tire model takes on a tire saturating "
            "there (mu Fz tanh(C alpha / (mu Fz)), Fz the static load); 0: off", 0.0, 2.0),
