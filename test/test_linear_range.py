@@ -53,8 +53,7 @@ def kernel_beyond(options: FilterOptions, speed: float, wheel: float, vy: float,
                   cr: float) -> tuple[bool, np.ndarray]:
     arrays = FilterArrays.from_config(EstimatorConfig(options=options))
     out = np.zeros(N_OUTPUTS)
-    beyond = beyond_linear_range(arrays.vehicle, arrays.settings, speed, wheel, 0.0, vy, yaw_rate, math.log(cf),
-                                 math.log(cr), out)
+    beyond = beyond_linear_range(arrays.vehicle, arrays.settings, speed, wheel, 0.0, vy, yaw_rate, cf, cr, out)
     return bool(beyond), out
 
 

@@ -53,7 +53,6 @@ from transplanter_ident.ekf.layout import (
     S_DELAY_MEMORY,
     S_DELAY_UNCERTAINTY,
     S_LINEAR_RANGE,
-    S_LOG,
     S_MAX_LAT_ACC,
     S_MAX_NOISE_SCALE,
     S_MAX_SLIP,
@@ -79,13 +78,13 @@ from transplanter_ident.jit import inline_kernel
 
 
 @inline_kernel
-def beyond_linear_range(vehicle, settings, speed, steering, offset, vy, yaw_rate, theta_f, theta_r, out):
+def beyond_linear_range(vehicle, settings, speed, steering, offset, vy, yaw_rate, cf, cr, out):
     """Whether the tire forces, the slip angles or the lateral acceleration leave the linear tire's range.
 
     From the last estimate of vy and r (which the measurements keep close to the truth), not
     from the prediction (a wrong stiffness must not make the tires look saturated) nor from
     the differenced yaw rate (its noise would select the epochs). The force test is the stiffness
-    (of theta_f, theta_r) times the slip against ``max_tire_utilisation`` of what the tire gives at
+    (cf, cr, N/rad) times the slip against ``max_tire_utilisation`` of what the tire gives at
     ``min_friction`` (:func:`friction_utilisation`): the linear range in slip is mu Fz / C, wider
     for a soft tire than for a stiff one, so no one slip angle bounds it for every tire.
     """
@@ -101,8 +100,6 @@ def beyond_linear_range(vehicle, settings, speed, steering, offset, vy, yaw_rate
     limit = settings[S_MAX_SLIP]
     if abs(slip_f) > limit or abs(slip_r) > limit or abs(lateral_acceleration) > settings[S_MAX_LAT_ACC]:
         return True
-    log_state = settings[S_LOG] > 0.5
-    cf, cr = (math.exp(theta_f), math.exp(theta_r)) if log_state else (theta_f, theta_r)
     most = settings[S_MAX_UTILISATION]
     return most > 0.0 and max(friction_utilisation(settings, vehicle, slip_f, cf, True),
                               friction_utilisation(settings, vehicle, slip_r, cr, False)) > most

@@ -326,7 +326,8 @@ def make_kernels(heading):
         # the tire's range from the last motion estimate, once both stiffnesses are known (see adaptation.py)
         log_state = settings[S_LOG] > 0.5
         wheel = steering - 0.5 * dt * steering_rate  # at the interval's start, as x (the ramp of predict_n)
-        nonlinear = (beyond_linear_range(vehicle, settings, speed, wheel, x[nb], x[X_VY], x[X_R], x[nf], x[nr], out)
+        nonlinear = (beyond_linear_range(vehicle, settings, speed, wheel, x[nb], x[X_VY], x[X_R],
+                                         stiffness(x, settings, 0)[0], stiffness(x, settings, 1)[0], out)
                      and known_to(x[nf], p[nf, nf], log_state) and known_to(x[nr], p[nr, nr], log_state))
 
         # 3.
@@ -377,8 +378,7 @@ def make_kernels(heading):
             if not nonlinear and settings[S_CHANGE_DETECTION] > 0.5:  # gated outliers never raise an alarm
                 detect_change(memo, settings, t, nis, out)
         low, high = settings[S_LOW], settings[S_HIGH]
-        x[nf] = min(max(x[nf], low), high)
-        x[nr] = min(max(x[nr], low), high)
+        x[nf], x[nr] = min(max(x[nf], low), high), min(max(x[nr], low), high)
 
         # 7.
         if not healthy(x, p, r_model, vy_model, nis):  # roll back; re-initialise if it lasts (recovery.py)
