@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from drives import TRUE_CF, TRUE_CR, Run, run_drive, sine_drive
 from helpers import sim_samples
+from independent_sim import independent_drive
 
 from transplanter_ident.config.parameters import EstimatorConfig, ValiditySettings, VehicleParams
 from transplanter_ident.ekf.joint_ekf import run_sequence
@@ -188,6 +189,46 @@ def test_an_antenna_ahead_of_the_cg_is_no_implausible_sideslip() -> None:
     assert named_share(lever_arm_decisions("enu"), "implausible sideslip") == 0.0
     assert named_share(lever_arm_decisions("enu", "antenna only"), "implausible sideslip") >= 0.95
     assert named_share(lever_arm_decisions("ned"), "frames.velocity") >= 0.95
+
+
+#: an antenna 0.30 m behind the CG, 0.20 m ahead of the rear axle: at 1.9 m/s the rear tires' slip
+#: (m lf vx^2 r / (2 L Cr) = 0.20 r) cancels the kinematic (lr + antenna_x) r, so its vy is ~0 with a true heading
+NEUTRAL = VehicleParams(mass=1121.0, lf=0.75, lr=0.50, antenna_x=-0.30, antenna_y=0.21)
+
+
+def neutral_point_decisions(heading: str, monitor_of: str = "config") -> list[tuple[np.ndarray, list]]:
+    """Seeds 0-3, 60 s of the independent simulator (nearly linear tires), the estimator told the vehicle.
+
+    ``heading`` "course": a single antenna's course over ground; ``monitor_of`` "lever only": the
+    course-over-ground check before it took the rear axle's slip into account.
+    """
+    config = EstimatorConfig(vehicle=NEUTRAL)
+    out = []
+    for seed in range(4):
+        result = independent_drive(seed, speed=1.9, amplitude_deg=23.0, period=11.4, duration=60.0, friction=5.0,
+                                   cf=5736.0, cr=5978.0, vehicle=NEUTRAL)
+        if heading == "course":
+            course = np.arctan2(result.velocity_enu[:, 1], result.velocity_enu[:, 0])
+            result = SimResult(**{**result.__dict__, "heading": course})
+        epochs = epochs_of(result, antenna_x=NEUTRAL.antenna_x, antenna_y=NEUTRAL.antenna_y)
+        outputs = run_sequence(config, epochs)
+        monitor = monitor_for(config, SETTINGS) if monitor_of == "config" else ValidityMonitor(
+            SETTINGS, config.options.stiffness_bounds, NEUTRAL.lr + NEUTRAL.antenna_x, NEUTRAL.antenna_x)
+        out.append((np.asarray(epochs.t), [monitor.step(sample_of(epochs[i], outputs[i])) for i in range(len(epochs))]))
+    return out
+
+
+def test_an_antenna_near_the_neutral_point_is_no_course_over_ground() -> None:
+    """The course-over-ground check expects the vy of a steady turn less the rear axle's slip: no false ERROR.
+
+    With a true dual-antenna heading, the check on (lr + antenna_x) r alone named "course over ground"
+    (a hard ERROR, invalid at once) in 11 % of the epochs from 20 s on (measured 5 / 22 / 0 / 15 % on
+    seeds 0-3; asserted >= 5 %, so this test can fail); now in none. A course-over-ground heading on the
+    same drives is still named in >= 95 % (measured 100 %).
+    """
+    assert named_share(neutral_point_decisions("dual antenna"), "course over ground") == 0.0
+    assert named_share(neutral_point_decisions("dual antenna", "lever only"), "course over ground") >= 0.05
+    assert named_share(neutral_point_decisions("course"), "course over ground") >= 0.95
 
 
 def test_hysteresis_needs_hold_on_to_become_valid_and_hold_off_to_drop() -> None:

@@ -114,8 +114,9 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
             for i in range(start, min(n, start + int(rng.integers(1, 200)))):
                 rejected[i] = int(rng.integers(0, 3))
         expected = monitor_decisions(settings, epochs, outputs, rejected)
-        got = decide_batch(settings, CONFIG.options.stiffness_bounds, CONFIG.vehicle.lr + CONFIG.vehicle.antenna_x,
-                           RECHECK, epochs, outputs, rejected, DISTRUSTED)
+        monitor = monitor_for(CONFIG, settings)
+        got = decide_batch(settings, monitor.bounds, monitor.lever, RECHECK, epochs, outputs, rejected, DISTRUSTED,
+                           monitor.antenna_x, monitor.rear_slip_gain)
         assert got is not None and np.array_equal(got, expected), f"case {case}"
         flips += int(np.count_nonzero(np.diff(expected.astype(int))))
     assert flips > 50  # the cases switch valid on and off, not one constant answer

@@ -324,8 +324,9 @@ SCHEMA: tuple[Param, ...] = (
            "which the filter is inconsistent (an unconfigured delay)", 0.01, 1.0, read_only=False),
     _float("validity.max_sideslip", 0.35, "rad", "median |vy/vx| above which GNSS velocity and heading disagree "
            "(a frame mix-up)", 0.01, 1.6, read_only=False),
-    _float("validity.course_ratio", 0.2, "", "RMS antenna vy below this fraction of (lr + antenna_x) RMS r "
-           "while turning: the heading is a course over ground", 0.001, 1.0, read_only=False),
+    _float("validity.course_ratio", 0.2, "", "RMS antenna vy below this fraction of the RMS vy a steady turn "
+           "gives there ((lr + antenna_x) r less the rear axle's slip at the estimated Cr) while turning: the "
+           "heading is a course over ground", 0.001, 1.0, read_only=False),
     _float("validity.hold_on", 3.0, "s", "every check must hold this long before the estimate is valid", 0.0,
            600.0, read_only=False),
     _float("validity.hold_off", 1.0, "s", "a soft check must fail this long before the estimate is invalid",

@@ -11,9 +11,10 @@ of these hold over a window of data time (the same decision online and offline):
   filter's model and R are right) passes a windowed chi^2 test, and the whitened innovations are
   not autocorrelated (an unconfigured GNSS delay, a wrong lever arm or a wrong R show there);
 * plausible: the heading is not a course over ground (then vy is zero by construction while the
-  vehicle turns), and the GNSS velocity agrees with the heading (an ENU/NED mix-up implies a
-  sideslip at the CG no transplanter has, or a course that turns against the heading; an antenna
-  ahead of the CG adds antenna_x r to its vy, which is no sideslip);
+  vehicle turns: the antenna's vy stays well below what a steady turn gives there, (lr + antenna_x) r
+  less the rear axle's slip at the estimated Cr), and the GNSS velocity agrees with the heading (an
+  ENU/NED mix-up implies a sideslip at the CG no transplanter has, or a course that turns against
+  the heading; an antenna ahead of the CG adds antenna_x r to its vy, which is no sideslip);
 * trusted input (issue #14): at most ``max_suspect_fraction`` of the window's epochs follow a
   rejected input sample (:attr:`Sample.rejected`: the samples and epochs rejected since the
   previous epoch, in the order they were processed: the same online and offline) or were gated,
@@ -50,7 +51,13 @@ from transplanter_ident.ekf.layout import (
     StepStatus,
 )
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
-from transplanter_ident.evaluation.validity_batch import decide_batch, delay_shift, delay_shifts, delay_shows
+from transplanter_ident.evaluation.validity_batch import (
+    decide_batch,
+    delay_shift,
+    delay_shifts,
+    delay_shows,
+    steady_antenna_vy,
+)
 
 #: s of data between two evaluations of the window checks
 RECHECK = 1.0
@@ -101,11 +108,12 @@ class ValidityMonitor:
     """
 
     def __init__(self, settings: ValiditySettings, bounds: tuple[float, float], lever: float,
-                 antenna_x: float = 0.0) -> None:
+                 antenna_x: float = 0.0, rear_slip_gain: float = 0.0) -> None:
         self.settings = settings
         self.bounds = bounds
         self.lever = lever  # lr + antenna_x: how far behind the antenna the rear axle is
         self.antenna_x = antenna_x  # m, the antenna ahead of the CG: its vy holds antenna_x r besides the sideslip
+        self.rear_slip_gain = rear_slip_gain  # kg m, m lf / (2 (lf + lr)): the rear axle's slip (steady_antenna_vy)
         self.reset()
 
     def reset(self) -> None:
@@ -192,9 +200,11 @@ class ValidityMonitor:
         return reasons
 
     def _course_over_ground(self, window: list[Sample]) -> bool:
+        """Whether vy stays well below what a steady turn gives at the antenna, while the vehicle turns."""
         rms_r = math.sqrt(sum(w.yaw_rate ** 2 for w in window) / len(window))
         rms_vy = math.sqrt(sum(w.antenna_lateral_velocity ** 2 for w in window) / len(window))
-        return rms_r > 0.05 and rms_vy < self.settings.course_ratio * abs(self.lever) * rms_r
+        steady = sum(steady_antenna_vy(self.lever, self.rear_slip_gain, w.speed, w.cr, w.yaw_rate) ** 2 for w in window)
+        return rms_r > 0.05 and rms_vy < self.settings.course_ratio * math.sqrt(steady / len(window))
 
     def _suspect(self, window: list[Sample]) -> list[str]:
         suspect = sum(1 for w in window if w.rejected or w.status in DISTRUSTED)
@@ -276,9 +286,11 @@ def sample_of(epoch: Epoch, row: np.ndarray, rejected: int = 0) -> Sample:
 
 
 def monitor_for(config: EstimatorConfig, settings: ValiditySettings) -> ValidityMonitor:
-    """A monitor with the filter's stiffness bounds and the lever arm of the rear axle to the antenna."""
+    """A monitor with the filter's stiffness bounds, the lever arm of the rear axle to the antenna and its slip."""
     vehicle = config.vehicle
-    return ValidityMonitor(settings, config.options.stiffness_bounds, vehicle.lr + vehicle.antenna_x, vehicle.antenna_x)
+    rear_slip_gain = vehicle.mass * vehicle.lf / (2.0 * (vehicle.lf + vehicle.lr))
+    return ValidityMonitor(settings, config.options.stiffness_bounds, vehicle.lr + vehicle.antenna_x, vehicle.antenna_x,
+                           rear_slip_gain)
 
 
 def decide_sequence(config: EstimatorConfig, settings: ValiditySettings, epochs: EpochArrays,
@@ -291,7 +303,7 @@ def decide_sequence(config: EstimatorConfig, settings: ValiditySettings, epochs:
     monitor = monitor_for(config, settings)
     counts = rejected if rejected is not None else [0] * len(epochs)
     valid = decide_batch(settings, monitor.bounds, monitor.lever, RECHECK, epochs, outputs, counts, DISTRUSTED,
-                         monitor.antenna_x)
+                         monitor.antenna_x, monitor.rear_slip_gain)
     if valid is not None:
         return valid
     return np.array([monitor.step(sample_of(epochs[i], outputs[i], counts[i])).valid for i in range(len(epochs))],

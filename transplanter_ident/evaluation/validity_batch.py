@@ -60,14 +60,26 @@ def delay_shifts(delay, std, sensitivity, rel_std, max_shift: float):  # noqa: A
     return (std > 0.0) & (delay_shift(delay, std, sensitivity) > max_shift * rel_std)
 
 
+def steady_antenna_vy(lever: float, rear_slip_gain: float, speed: float, cr: float, yaw_rate: float) -> float:
+    """The antenna's vy in a steady turn at ``yaw_rate``: (lr + antenna_x) r less the rear tires' slip.
+
+    The rear axle slides out by vx alpha_r = m lf vx^2 r / (2 (lf + lr) Cr) (eq. 4 in steady state);
+    ``rear_slip_gain`` is m lf / (2 (lf + lr)), ``cr`` the estimated Cr. An antenna just behind the
+    CG, where that slip cancels the kinematic (lr + antenna_x) r, sees a vy near zero with a true heading.
+    """
+    return (lever - rear_slip_gain * speed * speed / cr) * yaw_rate
+
+
 def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever: float, recheck: float,
                  epochs: EpochArrays, outputs: np.ndarray, rejected: Sequence[int],
-                 distrusted: Iterable[StepStatus], antenna_x: float = 0.0) -> np.ndarray | None:
+                 distrusted: Iterable[StepStatus], antenna_x: float = 0.0,
+                 rear_slip_gain: float = 0.0) -> np.ndarray | None:
     """The monitor's ``valid`` for every epoch, or None when the times do not strictly increase.
 
     ``rejected``: per epoch, the samples rejected since the previous one (Sample.rejected);
     ``distrusted``: the statuses that make an epoch suspect (validity.DISTRUSTED); ``antenna_x``: the
-    antenna ahead of the CG (the sideslip check takes vy at the CG, ValidityMonitor.antenna_x).
+    antenna ahead of the CG (the sideslip check takes vy at the CG, ValidityMonitor.antenna_x);
+    ``rear_slip_gain``: the course-over-ground check's (:func:`steady_antenna_vy`, ValidityMonitor.rear_slip_gain).
     """
     t = np.ascontiguousarray(epochs.t, dtype=np.float64)
     n = len(t)
@@ -110,20 +122,22 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
                 for b0, b1, t0, t1 in zip(beta, beta[1:], tp, tp[1:], strict=False)]
     r_sq = np.array([x ** 2 for x in rp])
     vy_sq = np.array([x ** 2 for x in vy[plaus].tolist()])
+    steady_sq = np.array([steady_antenna_vy(lever, rear_slip_gain, v, c, x) ** 2
+                          for v, c, x in zip(speed[plaus].tolist(), cr[plaus].tolist(), rp, strict=True)])
     s = settings
-    limits = np.array([s.window, recheck, s.max_sideslip, 0.05 ** 2, s.course_ratio * abs(lever),
+    limits = np.array([s.window, recheck, s.max_sideslip, 0.05 ** 2, s.course_ratio,
                        s.max_nonlinear_fraction, s.min_steering_std, s.min_yaw_rate_std, s.nis_quantile_sigmas,
                        s.max_autocorrelation, s.hold_on, s.hold_off, s.max_suspect_fraction])
     return _decide_kernel(t, status == int(StepStatus.NONLINEAR), hard, soft, np.ascontiguousarray(epochs.steering),
-                          r, plaus, sideslip[plaus], rate, r_sq, vy_sq, consist, nis[consist], whitened[consist],
-                          suspect, limits)
+                          r, plaus, sideslip[plaus], rate, r_sq, vy_sq, steady_sq, consist, nis[consist],
+                          whitened[consist], suspect, limits)
 
 
 @entry_kernel
 def _decide_kernel(t, nonlinear, epoch_hard, epoch_soft, steering, r, plaus, sideslip, rate, r_sq, vy_sq,  # noqa: ANN001, ANN201, PLR0913
-                   consist, nis, whitened, suspect, limits):
+                   steady_sq, consist, nis, whitened, suspect, limits):
     """ValidityMonitor.step over the sequence (times strictly increasing): the valid flag of every epoch."""
-    window, recheck, max_sideslip, mixed_floor, course_factor = limits[0], limits[1], limits[2], limits[3], limits[4]
+    window, recheck, max_sideslip, mixed_floor, course_ratio = limits[0], limits[1], limits[2], limits[3], limits[4]
     max_nonlinear, min_steering_std, min_yaw_rate_std = limits[5], limits[6], limits[7]
     sigmas, max_rho, hold_on, hold_off, max_suspect = limits[8], limits[9], limits[10], limits[11], limits[12]
     n = len(t)
@@ -142,8 +156,8 @@ def _decide_kernel(t, nonlinear, epoch_hard, epoch_soft, steering, r, plaus, sid
             checked_at = t[i]
             a = np.searchsorted(plaus, lo)
             b = np.searchsorted(plaus, i, side="right")
-            window_hard = _plausible_not(a, b, sideslip, rate, r, plaus, r_sq, vy_sq, max_sideslip, mixed_floor,
-                                         course_factor)
+            window_hard = _plausible_not(a, b, sideslip, rate, r, plaus, r_sq, vy_sq, steady_sq, max_sideslip,
+                                         mixed_floor, course_ratio)
             window_soft = suspect[lo:i + 1].sum() > max_suspect * (i - lo + 1) or _inconsistent(
                 lo, i, t, window, nonlinear, steering, r, consist, nis, whitened, max_nonlinear, min_steering_std,
                 min_yaw_rate_std, sigmas, max_rho)
@@ -165,7 +179,8 @@ def _decide_kernel(t, nonlinear, epoch_hard, epoch_soft, steering, r, plaus, sid
 
 
 @entry_kernel
-def _plausible_not(a, b, sideslip, rate, r, plaus, r_sq, vy_sq, max_sideslip, mixed_floor, course_factor):  # noqa: ANN001, ANN201, PLR0913
+def _plausible_not(a, b, sideslip, rate, r, plaus, r_sq, vy_sq, steady_sq, max_sideslip, mixed_floor,  # noqa: ANN001, ANN201, PLR0913
+                   course_ratio):
     """Whether ValidityMonitor._plausibility finds a reason, over plausibility epochs a..b-1."""
     count = b - a
     if count < 5:
@@ -182,12 +197,14 @@ def _plausible_not(a, b, sideslip, rate, r, plaus, r_sq, vy_sq, max_sideslip, mi
         return True
     sum_r = 0.0
     sum_vy = 0.0
+    sum_steady = 0.0
     for j in range(a, b):
         sum_r += r_sq[j]
         sum_vy += vy_sq[j]
+        sum_steady += steady_sq[j]
     rms_r = np.sqrt(sum_r / count)
     rms_vy = np.sqrt(sum_vy / count)
-    return rms_r > 0.05 and rms_vy < course_factor * rms_r
+    return rms_r > 0.05 and rms_vy < course_ratio * np.sqrt(sum_steady / count)
 
 
 @entry_kernel
