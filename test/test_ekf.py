@@ -305,7 +305,7 @@ def test_update_is_the_textbook_kalman_update(sequence, name):
     factors = np.array(ekf.step(epochs[INJECT - 1]).row)[[O_NOISE_SCALE_VY, O_NOISE_SCALE_SECOND]]
     x, p = ekf.state.copy(), ekf.covariance.copy()
     epoch = epochs[INJECT]
-    x_pred, model, ws = x.copy(), np.zeros(3), work_buffer()
+    x_pred, model, ws = x.copy(), np.zeros(N_MODEL), work_buffer()
     predict(x_pred, model, arrays.vehicle, arrays.settings, epoch.t - epochs[INJECT - 1].t, epoch.speed,
             epoch.steering, epoch.steering_rate, ws)
     n = len(x)
@@ -380,7 +380,7 @@ def test_set_noise_keeps_the_state_and_changes_q_and_r(sequence):
         np.testing.assert_array_equal(changed.state, reference.state)
         np.testing.assert_array_equal(changed.covariance, reference.covariance)
         ws, arrays, epoch = work_buffer(), FilterArrays.from_config(DEFAULT), epochs[INJECT]
-        predict(reference.state.copy(), np.zeros(3), arrays.vehicle, arrays.settings, epoch.t - epochs[INJECT - 1].t,
+        predict(reference.state.copy(), np.zeros(N_MODEL), arrays.vehicle, arrays.settings, epoch.t - epochs[INJECT - 1].t,
                 epoch.speed, epoch.steering, epoch.steering_rate, ws)
         g_vy, g_psi = ws[W_VEC, V_SPEED_GAIN, 0], ws[W_VEC, V_SPEED_GAIN, 2]  # dx/dvx: the speed's noise in Q
         a, b = changed.step(epochs[INJECT]), reference.step(epochs[INJECT])

@@ -16,6 +16,7 @@ from transplanter_ident.ekf.joint_ekf import FilterArrays
 from transplanter_ident.ekf.layout import (
     EULER,
     EXACT,
+    N_MODEL,
     V_SPEED_GAIN,
     W_DE_F,
     W_DE_R,
@@ -54,7 +55,7 @@ def eq4(vehicle: VehicleParams, cf: float, cr: float, vx: float) -> tuple[np.nda
 def augmented(cf: float, cr: float, vx: float, with_heading: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """M, dM/dCf, dM/dCr from continuous_matrix, cut to their size nd + 2."""
     ws = work_buffer()
-    continuous_matrix(cf, cr, vx, vehicle_array(VEHICLE), with_heading, ws)
+    continuous_matrix(cf, cr, vx, vehicle_array(VEHICLE), with_heading, False, 0.0, ws)
     size = (3 if with_heading else 2) + 2
     return ws[W_M, :size, :size].copy(), ws[W_DM_F, :size, :size].copy(), ws[W_DM_R, :size, :size].copy()
 
@@ -68,7 +69,7 @@ def run_predict(arrays: FilterArrays, x: np.ndarray, dt: float, speed: float, st
                 steering_rate: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(f(x), F, propagated open-loop model) from ekf.predict on copies."""
     x_new = x.copy()
-    model = np.zeros(3)
+    model = np.zeros(N_MODEL)
     model[: len(x) - 3] = x[: len(x) - 3]
     ws = work_buffer()
     predict(x_new, model, arrays.vehicle, arrays.settings, dt, speed, steering, steering_rate, ws)
@@ -102,9 +103,9 @@ def test_continuous_matrix_does_not_depend_on_what_the_buffer_held():
     """A work buffer reused across modes (heading, then yaw_rate) gives the same M as a fresh one."""
     vehicle = vehicle_array(VEHICLE)
     reused, fresh = work_buffer(), work_buffer()
-    continuous_matrix(8000.0, 10000.0, 2.0, vehicle, True, reused)
-    continuous_matrix(8000.0, 10000.0, 2.0, vehicle, False, reused)
-    continuous_matrix(8000.0, 10000.0, 2.0, vehicle, False, fresh)
+    continuous_matrix(8000.0, 10000.0, 2.0, vehicle, True, False, 0.0, reused)
+    continuous_matrix(8000.0, 10000.0, 2.0, vehicle, False, False, 0.0, reused)
+    continuous_matrix(8000.0, 10000.0, 2.0, vehicle, False, False, 0.0, fresh)
     for slot in (W_M, W_DM_F, W_DM_R):
         np.testing.assert_array_equal(reused[slot, :4, :4], fresh[slot, :4, :4])
 
@@ -261,7 +262,7 @@ def test_prediction_carries_its_speed_derivative(discretization: str, stiffness:
     ahead = run_predict(arrays, x, 0.2, speed + h, 0.2, 0.1)[0]
     behind = run_predict(arrays, x, 0.2, speed - h, 0.2, 0.1)[0]
     ws = work_buffer()
-    predict(x.copy(), np.zeros(3), arrays.vehicle, arrays.settings, 0.2, speed, 0.2, 0.1, ws)
+    predict(x.copy(), np.zeros(N_MODEL), arrays.vehicle, arrays.settings, 0.2, speed, 0.2, 0.1, ws)
     want = (ahead - behind)[:nd] / (2.0 * h)
     assert np.max(np.abs(ws[W_VEC, V_SPEED_GAIN, :nd] - want)) <= 1e-6 * np.max(np.abs(want))
 

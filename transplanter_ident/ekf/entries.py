@@ -14,6 +14,7 @@ from typing import Any, NamedTuple
 
 from transplanter_ident.ekf.kernels import make_kernels
 from transplanter_ident.ekf.layout import (
+    HEADING_LAG_STATES,
     HEADING_STATES,
     N_EPOCH_COLUMNS,
     N_MEMO,
@@ -21,8 +22,10 @@ from transplanter_ident.ekf.layout import (
     N_OUTPUTS,
     N_SETTINGS,
     N_VEHICLE,
+    VEH_RELAXATION,
     WORK_SIZE,
     WORK_SLOTS,
+    YAW_RATE_LAG_STATES,
     YAW_RATE_STATES,
 )
 from transplanter_ident.ekf.sequence import make_sequence_kernels
@@ -30,17 +33,19 @@ from transplanter_ident.jit import entry_kernel
 
 _predict_yaw_rate, _step_yaw_rate = make_kernels(heading=False)
 _predict_heading, _step_heading = make_kernels(heading=True)
+_predict_yaw_rate_lagged, _step_yaw_rate_lagged = make_kernels(heading=False, lagged=True)
+_predict_heading_lagged, _step_heading_lagged = make_kernels(heading=True, lagged=True)
 
 
 
 @entry_kernel
 def _predict_yaw_rate_entry(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):  # noqa: ANN001, ANN202
-    _predict_yaw_rate(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
+    _predict_yaw_rate(x, model, vehicle, settings, dt, speed, steering, steering_rate, vehicle[VEH_RELAXATION], ws)
 
 
 @entry_kernel
 def _predict_heading_entry(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):  # noqa: ANN001, ANN202
-    _predict_heading(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
+    _predict_heading(x, model, vehicle, settings, dt, speed, steering, steering_rate, vehicle[VEH_RELAXATION], ws)
 
 
 @entry_kernel(runtime=False)
@@ -57,10 +62,36 @@ def _step_heading_entry(x, p, model, memo, vehicle, settings, q, r_noise, t, spe
                          vy, psi, yaw_rate, ws, out)
 
 
+@entry_kernel
+def _predict_yaw_rate_lagged_entry(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):  # noqa: ANN001, ANN202
+    _predict_yaw_rate_lagged(x, model, vehicle, settings, dt, speed, steering, steering_rate, vehicle[VEH_RELAXATION], ws)
+
+
+@entry_kernel
+def _predict_heading_lagged_entry(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):  # noqa: ANN001, ANN202
+    _predict_heading_lagged(x, model, vehicle, settings, dt, speed, steering, steering_rate, vehicle[VEH_RELAXATION], ws)
+
+
+@entry_kernel(runtime=False)
+def _step_yaw_rate_lagged_entry(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,  # noqa: ANN001, ANN202
+            steering_rate, vy, psi, yaw_rate, ws, out):
+    return _step_yaw_rate_lagged(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering, steering_rate,
+                                 vy, psi, yaw_rate, ws, out)
+
+
+@entry_kernel(runtime=False)
+def _step_heading_lagged_entry(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering,  # noqa: ANN001, ANN202
+            steering_rate, vy, psi, yaw_rate, ws, out):
+    return _step_heading_lagged(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steering, steering_rate,
+                                vy, psi, yaw_rate, ws, out)
+
+
 # The loops call the step's own cached entry: the step is compiled once, and a process that finds
 # it in numba's disk cache (one compiled by another process) only links it.
 _run_yaw_rate, _objective_yaw_rate = make_sequence_kernels(_step_yaw_rate_entry, heading=False)
 _run_heading, _objective_heading = make_sequence_kernels(_step_heading_entry, heading=True)
+_run_yaw_rate_lagged, _objective_yaw_rate_lagged = make_sequence_kernels(_step_yaw_rate_lagged_entry, heading=False)
+_run_heading_lagged, _objective_heading_lagged = make_sequence_kernels(_step_heading_lagged_entry, heading=True)
 
 
 @entry_kernel
@@ -85,6 +116,28 @@ def objective_heading(epochs, x, p, model, memo, vehicle, settings, q, r_noise, 
     return _objective_heading(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind)
 
 
+@entry_kernel
+def _run_yaw_rate_lagged_entry(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs):  # noqa: ANN001, ANN202
+    _run_yaw_rate_lagged(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs)
+
+
+@entry_kernel
+def _run_heading_lagged_entry(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs):  # noqa: ANN001, ANN202
+    _run_heading_lagged(epochs, x, p, model, memo, vehicle, settings, q, r_noise, outputs)
+
+
+@entry_kernel
+def objective_yaw_rate_lagged(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind):  # noqa: ANN001, ANN201
+    """objective_kernel for the yaw_rate filter with relaxing tires; callable from compiled code."""
+    return _objective_yaw_rate_lagged(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind)
+
+
+@entry_kernel
+def objective_heading_lagged(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind):  # noqa: ANN001, ANN201
+    """objective_kernel for the heading filter with relaxing tires; callable from compiled code."""
+    return _objective_heading_lagged(epochs, x, p, model, memo, vehicle, settings, q, r_noise, kind)
+
+
 class Kernels(NamedTuple):
     """The compiled filter for one state size (numba compiles each lazily, on first call)."""
 
@@ -94,10 +147,15 @@ class Kernels(NamedTuple):
     objective: Any
 
 
-#: by state size: HEADING_STATES = [vy, r, psi, th_f, th_r, b], YAW_RATE_STATES = [vy, r, th_f, th_r, b]
+#: by state size: HEADING_STATES = [vy, r, psi, th_f, th_r, b], YAW_RATE_STATES = [vy, r, th_f, th_r, b], and
+#: with relaxing tires the slip lags after the motion states (HEADING_LAG_STATES, YAW_RATE_LAG_STATES)
 KERNELS = {
     YAW_RATE_STATES: Kernels(_predict_yaw_rate_entry, _step_yaw_rate_entry, _run_yaw_rate_entry, objective_yaw_rate),
     HEADING_STATES: Kernels(_predict_heading_entry, _step_heading_entry, _run_heading_entry, objective_heading),
+    YAW_RATE_LAG_STATES: Kernels(_predict_yaw_rate_lagged_entry, _step_yaw_rate_lagged_entry,
+                                 _run_yaw_rate_lagged_entry, objective_yaw_rate_lagged),
+    HEADING_LAG_STATES: Kernels(_predict_heading_lagged_entry, _step_heading_lagged_entry, _run_heading_lagged_entry,
+                                objective_heading_lagged),
 }
 
 
@@ -109,7 +167,7 @@ def kernels_for(x, p=None, model=None, memo=None, vehicle=None, settings=None, q
     """
     n = x.shape[0] if x.ndim == 1 else -1
     if n not in KERNELS:
-        raise ValueError(f"state vector of shape {x.shape}: expected ({HEADING_STATES},) or ({YAW_RATE_STATES},)")
+        raise ValueError(f"state vector of shape {x.shape}: expected one of {sorted((k,) for k in KERNELS)}")
     expected = {"p": (p, (n, n)), "model": (model, (N_MODEL,)), "memo": (memo, (N_MEMO,)),
                 "vehicle": (vehicle, (N_VEHICLE,)), "settings": (settings, (N_SETTINGS,)), "q": (q, (n,)),
                 "r_noise": (r_noise, (2,)), "ws": (ws, (WORK_SLOTS, WORK_SIZE, WORK_SIZE)),
@@ -138,15 +196,15 @@ def ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steerin
              steering_rate, vy, psi, yaw_rate, ws, out):
     """Process one epoch in place; return the StepStatus. ``out`` receives one output row.
 
-    Parameters (n = HEADING_STATES or YAW_RATE_STATES; every array float64, updated in place
-    where marked *):
+    Parameters (n = HEADING_STATES or YAW_RATE_STATES, N_LAG more with relaxing tires; every array
+    float64, updated in place where marked *):
 
-    x : (n,)*           state [vy, r, (psi,) theta_f, theta_r, b], layout.X_*
+    x : (n,)*           state [vy, r, (psi,) (d_f, d_r,) theta_f, theta_r, b], layout.X_*
     p : (n, n)*         state covariance P
-    model : (3,)*       open-loop model output [vy, r, psi] (paper Figs. 6-7)
+    model : (N_MODEL,)*  open-loop model output (paper Figs. 6-7): [vy, r, psi], or x's motion states and lags
     memo : (N_MEMO,)*   [t_prev, initialised, consecutive gated, CUSUM, adapting until, consecutive diverged,
                         saturation bias of each state (n)], layout.M_*
-    vehicle : (4,)      [mass, lf, lr, iz], model.vehicle_array
+    vehicle : (N_VEHICLE,)  [mass, lf, lr, iz, relaxation length], model.vehicle_array
     settings : (N_SETTINGS,)  options as numbers, layout.S_*
     q : (n,)            diag Q as a spectral density (per second; each interval adds q dt)
     r_noise : (2,)      diag R: vy (m/s)^2, then psi rad^2 (or r (rad/s)^2)

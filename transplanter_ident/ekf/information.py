@@ -90,7 +90,7 @@ def output_error_information(epochs, theta, vehicle, antenna_x, r_noise, segment
             continue
         rate = epochs[k, E_STEERING_RATE]
         delta = epochs[k, E_STEERING] - offset - 0.5 * rate * dt  # the ramp's start, as the filter drives it
-        discretize_heading(cf, cr, cf, cr, speed, dt, vehicle, method, False, ws)
+        discretize_heading(cf, cr, cf, cr, speed, dt, vehicle, method, False, 0.0, ws)
         for i in range(nd):
             acc = ws[W_E, i, nd] * delta + ws[W_E, i, nd + 1] * rate
             d_f = ws[W_DE_F, i, nd] * delta + ws[W_DE_F, i, nd + 1] * rate

@@ -27,8 +27,11 @@ from transplanter_ident.ekf.layout import (
     M_NOISE_SPAN_SECOND,
     M_NOISE_VY,
     MAE,
+    N_LAG,
     N_MEMO,
     N_MODEL,
+    N_MOTION_HEADING,
+    N_MOTION_YAW_RATE,
     N_OUTPUTS,
     N_SETTINGS,
     NLL,
@@ -142,7 +145,7 @@ class FilterArrays:
         settings[S_SCALE_UNCERTAINTY] = options.steering_scale_uncertainty
         settings[S_SPEED_NOISE] = 1.0 if options.speed_noise else 0.0
         settings[S_DELAY_MEMORY] = options.identifiability_memory
-        q, p0 = _state_diagonals(noise, options)
+        q, p0 = _state_diagonals(noise, options, config.vehicle.relaxation_length > 0.0)
         settings[S_P0_THETA_F], settings[S_P0_THETA_R], settings[S_P0_OFFSET] = p0[-3:]  # recovery.py
         x0 = np.zeros(len(q))
         x0[X_THETA_F] = to_state(noise.initial_stiffness[0])
@@ -158,12 +161,19 @@ class FilterArrays:
         )
 
 
-def _state_diagonals(noise: NoiseParams, options: FilterOptions) -> tuple[np.ndarray, np.ndarray]:
-    """Diag Q (a density, per second) and diag P0 in the state's order; a fixed offset has Q = P0 = 0."""
+def _state_diagonals(noise: NoiseParams, options: FilterOptions, lagged: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Diag Q (a density, per second) and diag P0 in the state's order; a fixed offset has Q = P0 = 0.
+
+    ``lagged`` (relaxing tires): the slip lags follow the motion states with Q = P0 = 0 (they start at
+    0, a steady turn, and follow vy, r and the steering deterministically).
+    """
     q, p0 = list(noise.process_noise), list(noise.initial_covariance)
     if options.measurement == "heading":
         q.insert(X_PSI, noise.heading_process_noise)
         p0.insert(X_PSI, noise.initial_heading_covariance)
+    motion = N_MOTION_HEADING if options.measurement == "heading" else N_MOTION_YAW_RATE
+    q[motion:motion] = [0.0] * (N_LAG if lagged else 0)
+    p0[motion:motion] = [0.0] * (N_LAG if lagged else 0)
     estimated = options.estimate_steering_offset
     q.append(noise.steering_offset_process_noise if estimated else 0.0)
     p0.append(noise.steering_offset_initial_variance if estimated else 0.0)

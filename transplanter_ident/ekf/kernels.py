@@ -3,8 +3,8 @@
 State: [vy, r, psi, theta_f, theta_r, b] with z = [vy_antenna, psi] (``heading``, the default) or
 [vy, r, theta_f, theta_r, b] with z = [vy_antenna, r] (``yaw_rate``, the paper's eq. 11). theta is
 ln C (``log``) or C (``linear``); b is the steering-sensor offset (wheel angle = sensor - b). The
-prediction uses :func:`model.discretize` (eq. 10 or exact ZOH, Jacobian eq. 13 with the A23
-erratum fixed) driven by the steering ramp minus b. The measurement holds the lever arm,
+prediction (:mod:`.prediction`) uses :func:`model.discretize` (eq. 10 or exact ZOH, Jacobian eq. 13
+with the A23 erratum fixed) driven by the steering ramp minus b. The measurement holds the lever arm,
 h(x) = [vy + antenna_x r, psi], and the update is eq. 12 in Joseph form with a Mahalanobis gate.
 The body-frame vy is the GNSS velocity turned by the *measured* heading, so its error holds
 -vx e_psi: R is full, [[R_v + vx^2 R_psi, -vx R_psi], [-vx R_psi, R_psi]] (R_v, R_psi as configured).
@@ -16,7 +16,10 @@ Beyond the paper (DESIGN.md section 7):
 * beyond the linear tire range only the motion states are updated (a Schmidt update);
 * a measurement gated ``max_gated`` times in a row re-initialises the motion states; it never
   forces a stiffness update;
-* the speed input is the GNSS's, with its noise: Q holds it through dx/dvx (``ekf.speed_noise``).
+* the speed input is the GNSS's, with its noise: Q holds it through dx/dvx (``ekf.speed_noise``);
+* relaxing tires (``vehicle.relaxation_length``): the slip lags of both axles follow the motion states,
+  modelled once both stiffnesses are known (before, from a prior far off, their weaker response
+  throws the stiffness to its bounds).
 
 Alongside the filter runs the *model output* of the paper's Figs. 6-7: the bicycle model driven by the
 measured steering and speed with the stiffness identified so far, open loop from the first measured state.
@@ -46,7 +49,6 @@ from transplanter_ident.ekf.adaptation import (
     signature_estimate,
 )
 from transplanter_ident.ekf.layout import (
-    EULER,
     HEADING_STATES,
     M_ADAPT_UNTIL,
     M_BIAS,
@@ -57,6 +59,7 @@ from transplanter_ident.ekf.layout import (
     M_DIVERGED,
     M_GATED,
     M_INITIALISED,
+    M_LAG_ACTIVE,
     M_NOISE_SECOND,
     M_NOISE_SPAN_SECOND,
     M_NOISE_SPAN_VY,
@@ -65,6 +68,7 @@ from transplanter_ident.ekf.layout import (
     M_SATURATION_SCORE,
     M_SCALE_BIAS,
     M_T_PREV,
+    N_LAG,
     N_MODEL,
     N_MOTION_HEADING,
     N_MOTION_YAW_RATE,
@@ -105,23 +109,12 @@ from transplanter_ident.ekf.layout import (
     S_LOW,
     S_MAX_GATED,
     S_MAX_INTERVAL,
-    S_METHOD,
     S_MIN_SPEED,
-    S_P0_PSI,
-    S_P0_R,
-    S_P0_VY,
     S_SPEED_NOISE,
     V_BACKUP_MODEL,
     V_BACKUP_X,
-    V_NEW_MODEL,
-    V_NEW_X,
-    V_SPEED_GAIN,
+    VEH_RELAXATION,
     W_BACKUP_P,
-    W_DE_F,
-    W_DE_R,
-    W_DE_V,
-    W_E,
-    W_F,
     W_VEC,
     X_PSI,
     X_R,
@@ -131,7 +124,7 @@ from transplanter_ident.ekf.layout import (
     Z_VY,
     StepStatus,
 )
-from transplanter_ident.ekf.model import discretize_heading, discretize_yaw_rate
+from transplanter_ident.ekf.prediction import make_prediction
 from transplanter_ident.ekf.recovery import make_recovery
 from transplanter_ident.ekf.sequence import innovation_covariance, normalized_innovation_squared
 from transplanter_ident.ekf.update import make_update
@@ -147,46 +140,22 @@ def _finite(value):
     return not (math.isnan(value) or math.isinf(value))
 
 
-def make_kernels(heading):
+def make_kernels(heading, lagged=False):
     """Compile predict/step/run/objective for one measurement mode (sizes become compile-time constants).
 
-    ``heading``: n = 6 states, z = [vy_antenna, psi]; else n = 5, z = [vy_antenna, r]. The small
-    loops unroll; all scratch lives in one work buffer indexed by slot (no per-step allocation).
+    ``heading``: n = 6 states, z = [vy_antenna, psi]; else n = 5, z = [vy_antenna, r]. ``lagged``: the
+    tires relax (vehicle.relaxation_length > 0), and the slip lags d_f, d_r follow the motion states
+    (n + N_LAG). The small loops unroll; all scratch lives in one work buffer indexed by slot (no
+    per-step allocation).
     """
-    n = HEADING_STATES if heading else YAW_RATE_STATES
-    nd = N_MOTION_HEADING if heading else N_MOTION_YAW_RATE  # motion states
+    lag = N_LAG if lagged else 0
+    n = (HEADING_STATES if heading else YAW_RATE_STATES) + lag
+    nd = (N_MOTION_HEADING if heading else N_MOTION_YAW_RATE) + lag  # motion states and slip lags
     nf, nr, nb = nd, nd + 1, nd + 2  # theta_f, theta_r, steering offset
     h1 = X_PSI if heading else X_R  # second measured state
-    discretize_n = discretize_heading if heading else discretize_yaw_rate
     propagate_covariance, add_speed_noise, joseph_update = make_update(n, nd, h1)
 
-    @inline_kernel
-    def reset_motion(x, p, model, settings, vy_antenna, psi, yaw_rate):
-        """Take the motion states from the measurement; keep the parameter states and their covariance."""
-        vy = vy_antenna - settings[S_ANTENNA_X] * yaw_rate
-        x[X_VY] = vy
-        x[X_R] = yaw_rate
-        model[X_VY] = vy
-        model[X_R] = yaw_rate
-        model[X_PSI] = psi
-        if heading:
-            x[X_PSI] = psi
-        for i in range(nd):
-            for j in range(n):
-                p[i, j] = 0.0
-                p[j, i] = 0.0
-        p[X_VY, X_VY] = settings[S_P0_VY]
-        p[X_R, X_R] = settings[S_P0_R]
-        if heading:
-            p[X_PSI, X_PSI] = settings[S_P0_PSI]
-
-    @inline_kernel
-    def stiffness(x, settings, k):
-        """C of theta_f (k = 0) or theta_r (k = 1), and dC/dtheta."""
-        if settings[S_LOG] > 0.5:
-            c = math.exp(x[nf + k])
-            return c, c
-        return x[nf + k], 1.0
+    reset_motion, stiffness, predict_n = make_prediction(heading, lagged)
 
     @called_kernel
     def write_outputs(x, p, memo, settings, status, r_model, vy_model, out):
@@ -214,46 +183,6 @@ def make_kernels(heading):
                                                                       M_SATURATION_INFORMATION)
         out[O_NOISE_SCALE_VY] = noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY)
         out[O_NOISE_SCALE_SECOND] = noise_scale(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND)
-
-    @inline_kernel
-    def predict_n(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws):
-        """X <- f(x, u), model <- f(model, u); F = df/dx into ws[W_F], df/dvx into ws[W_VEC, V_SPEED_GAIN].
-
-        The wheel angle is the sensor's minus the offset b: a ramp from (mean - b) - rate dt / 2
-        (``exact``) or the held mean - b (``euler``), so df/db = -E[:, delta].
-        """
-        cf, dcf = stiffness(x, settings, 0)
-        cr, dcr = stiffness(x, settings, 1)
-        method = int(settings[S_METHOD])
-        speed_noise = settings[S_SPEED_NOISE] > 0.5  # dx/dvx only when the speed's noise enters Q
-        discretize_n(cf, cr, dcf, dcr, speed, dt, vehicle, method, speed_noise, ws)
-        level = steering - x[nb]
-        if method != EULER:
-            level -= 0.5 * dt * steering_rate
-        for i in range(nd, n):  # the parameter rows (random walks); the motion rows are written below
-            for j in range(n):
-                ws[W_F, i, j] = 1.0 if i == j else 0.0
-        for i in range(nd):
-            acc = ws[W_E, i, nd] * level + ws[W_E, i, nd + 1] * steering_rate
-            acc_f = ws[W_DE_F, i, nd] * level + ws[W_DE_F, i, nd + 1] * steering_rate
-            acc_r = ws[W_DE_R, i, nd] * level + ws[W_DE_R, i, nd + 1] * steering_rate
-            acc_v = ws[W_DE_V, i, nd] * level + ws[W_DE_V, i, nd + 1] * steering_rate
-            acc_m = acc
-            for j in range(nd):
-                acc += ws[W_E, i, j] * x[j]
-                acc_f += ws[W_DE_F, i, j] * x[j]
-                acc_r += ws[W_DE_R, i, j] * x[j]
-                acc_v += ws[W_DE_V, i, j] * x[j]
-                acc_m += ws[W_E, i, j] * model[j]
-                ws[W_F, i, j] = ws[W_E, i, j]
-            ws[W_F, i, nf] = acc_f
-            ws[W_F, i, nr] = acc_r
-            ws[W_F, i, nb] = -ws[W_E, i, nd]
-            ws[W_VEC, V_NEW_X, i], ws[W_VEC, V_NEW_MODEL, i] = acc, acc_m
-            ws[W_VEC, V_SPEED_GAIN, i] = acc_v if speed_noise else 0.0
-        for i in range(nd):
-            x[i] = ws[W_VEC, V_NEW_X, i]
-            model[i] = ws[W_VEC, V_NEW_MODEL, i]
 
     @called_kernel
     def restart_motion(x, p, model, memo, settings, status, t, vy_antenna, psi, yaw_rate, out):
@@ -326,13 +255,17 @@ def make_kernels(heading):
         # the tire's range from the last motion estimate, once both stiffnesses are known (see adaptation.py)
         log_state = settings[S_LOG] > 0.5
         wheel = steering - 0.5 * dt * steering_rate  # at the interval's start, as x (the ramp of predict_n)
-        nonlinear = (beyond_linear_range(vehicle, settings, speed, wheel, x[nb], x[X_VY], x[X_R],
-                                         stiffness(x, settings, 0)[0], stiffness(x, settings, 1)[0], out)
-                     and known_to(x[nf], p[nf, nf], log_state) and known_to(x[nr], p[nr, nr], log_state))
+        beyond = beyond_linear_range(vehicle, settings, speed, wheel, x[nb], x[X_VY], x[X_R],
+                                     stiffness(x, settings, 0)[0], stiffness(x, settings, 1)[0], out)
+        known = known_to(x[nf], p[nf, nf], log_state) and known_to(x[nr], p[nr, nr], log_state)
+        nonlinear = beyond and known
+        if known:  # the slip lags from then on: from a prior far off their weaker response throws the stiffness
+            memo[M_LAG_ACTIVE] = 1.0
 
         # 3.
         psi_model_before = model[X_PSI]
-        predict_n(x, model, vehicle, settings, dt, speed, steering, steering_rate, ws)
+        relaxation = vehicle[VEH_RELAXATION] if lagged and memo[M_LAG_ACTIVE] > 0.5 else 0.0
+        predict_n(x, model, vehicle, settings, dt, speed, steering, steering_rate, relaxation, ws)
         r_model = (model[X_PSI] - psi_model_before) / dt if heading else model[X_R]
         vy_model = model[X_VY]
         adapting = t <= memo[M_ADAPT_UNTIL]

@@ -5,7 +5,9 @@ their slots so that no kernel writes a bare number:
 
 * state x (n,): [vy, r, psi, theta_f, theta_r, b] in ``heading`` mode (z = [vy_antenna, psi]) or
   [vy, r, theta_f, theta_r, b] in ``yaw_rate`` mode (the paper's eq. 11 plus b, z = [vy_antenna, r]);
-  theta = ln C (``log``) or C (``linear``), b the steering-sensor offset (wheel = sensor - b);
+  theta = ln C (``log``) or C (``linear``), b the steering-sensor offset (wheel = sensor - b). With a
+  tire relaxation length (``vehicle.relaxation_length`` > 0) the slip lags of the two axles, d_f and
+  d_r (the force is C (alpha - d)), follow the motion states: [vy, r, (psi), d_f, d_r, theta_f, theta_r, b];
 * settings (N_SETTINGS,): the filter options as numbers (``S_*``);
 * outputs (N_OUTPUTS,): one row per epoch (``O_*``);
 * memo (N_MEMO,): what the step remembers between epochs (``M_*``);
@@ -23,6 +25,9 @@ import enum
 X_VY, X_R, X_PSI = 0, 1, 2
 HEADING_STATES, YAW_RATE_STATES = 6, 5  # [vy, r, psi, th_f, th_r, b] and [vy, r, th_f, th_r, b]
 N_MOTION_HEADING, N_MOTION_YAW_RATE = 3, 2
+N_LAG = 2  # the slip lags [d_f, d_r] of a relaxing tire (model.continuous_matrix), after the motion states
+HEADING_LAG_STATES, YAW_RATE_LAG_STATES = HEADING_STATES + N_LAG, YAW_RATE_STATES + N_LAG
+MAX_STATES = HEADING_LAG_STATES
 X_THETA_F, X_THETA_R, X_OFFSET = -3, -2, -1  # the parameter states, counted from the end
 PARAMETER_STATES = [X_THETA_F, X_THETA_R, X_OFFSET]
 
@@ -65,17 +70,19 @@ M_T_PREV, M_INITIALISED, M_GATED, M_CUSUM, M_ADAPT_UNTIL, M_DIVERGED = 0, 1, 2, 
 M_BIAS = 6  # memo[M_BIAS + i]: the first-order bias of state i from the tire's saturation (adaptation.py)
 # the innovations' measure of R (adaptation.learn_noise_scales): the mean ratio of the measurement noise
 # variance to R, for vy and for the second measurement, and the weighted seconds of data in each
-M_NOISE_VY, M_NOISE_SECOND, M_NOISE_SPAN_VY, M_NOISE_SPAN_SECOND = 12, 13, 14, 15
-M_DELAY_BIAS = 16  # memo[M_DELAY_BIAS + i]: the bias of state i per second of unconfigured GNSS delay
+M_NOISE_VY, M_NOISE_SECOND, M_NOISE_SPAN_VY, M_NOISE_SPAN_SECOND = 14, 15, 16, 17
+M_DELAY_BIAS = 18  # memo[M_DELAY_BIAS + i]: the bias of state i per second of unconfigured GNSS delay
 # the online measure of that delay (adaptation.score_signature): score, information, seconds of data seen (both measures)
-M_DELAY_SCORE, M_DELAY_INFORMATION, M_DELAY_SETTLED = 22, 23, 24
+M_DELAY_SCORE, M_DELAY_INFORMATION, M_DELAY_SETTLED = 26, 27, 28
 # the same measure of the tire's saturation, in units of a tire at min_friction (adaptation.score_signature)
-M_SATURATION_SCORE, M_SATURATION_INFORMATION = 25, 26
-M_SCALE_BIAS = 27  # memo[M_SCALE_BIAS + i]: the bias of state i per unit (relative) steering gain error
-N_MEMO = 33
+M_SATURATION_SCORE, M_SATURATION_INFORMATION = 29, 30
+M_SCALE_BIAS = 31  # memo[M_SCALE_BIAS + i]: the bias of state i per unit (relative) steering gain error
+# 1 once both stiffnesses were known (adaptation.known_to): the slip lags are modelled from then on (kernels.py)
+M_LAG_ACTIVE = M_SCALE_BIAS + MAX_STATES  # each bias block holds MAX_STATES slots
+N_MEMO = M_LAG_ACTIVE + 1
 
-# the open-loop model's state [vy, r, psi]
-N_MODEL = 3
+# the open-loop model's state: the filter's motion states and slip lags, [vy, r, psi, d_f, d_r] or [vy, r, d_f, d_r]
+N_MODEL = N_MOTION_HEADING + N_LAG
 
 # epoch columns of the kernels' input, and the Epoch field each one holds (joint_ekf.kernel_input)
 E_T, E_SPEED, E_STEERING, E_STEERING_RATE, E_VY, E_PSI, E_YAW_RATE = 0, 1, 2, 3, 4, 5, 6
@@ -86,7 +93,8 @@ N_EPOCH_COLUMNS = len(EPOCH_COLUMNS)
 
 # vehicle constants (model.vehicle_array)
 VEH_MASS, VEH_LF, VEH_LR, VEH_IZ = 0, 1, 2, 3
-N_VEHICLE = 4
+VEH_RELAXATION = 4  # m, the tires' relaxation length (0: the force follows the slip at once, eq. 4)
+N_VEHICLE = 5
 
 # discretisation codes (settings[S_METHOD])
 EXACT, EULER = 0, 1
@@ -107,7 +115,7 @@ W_F, W_TMP, W_GAIN, W_BACKUP_P, W_VEC = 12, 13, 14, 15, 16
 # ... and the derivatives with respect to the speed vx (model.py; the speed's noise in Q, kernels.py)
 W_DE_V, W_DM_V, W_DT_V, W_NDT_V = 17, 18, 19, 20
 WORK_SLOTS = 21
-WORK_SIZE = 6
+WORK_SIZE = MAX_STATES
 # rows of ws[W_VEC]
 V_BACKUP_X, V_BACKUP_MODEL, V_NEW_X, V_NEW_MODEL, V_BIAS = 0, 1, 2, 3, 4
 V_SPEED_GAIN = 5  # d x_{k+1} / d vx over the interval (the speed input's noise in Q)

@@ -5,7 +5,10 @@ The model is stated once, as the augmented continuous matrix
     M(C) = [[A(Cf, Cr, vx), B(Cf), 0], [0, 0, 1], [0, 0, 0]]      (eq. 4, corrected eq. 1)
 
 over the motion states [vy, r] (plus heading psi with psi' = r in heading mode), the steering
-angle delta and its rate. Over one GNSS interval the steering is a ramp (the least-squares
+angle delta and its rate. With a tire relaxation length sigma (beyond the paper) each axle's force
+builds over sigma of travel, F' = (vx / sigma) (C alpha - F); the model then carries the slip lags
+d = alpha - F / C of both axles after the motion states (d' = alpha' - (vx / sigma) d, zero in a
+steady turn), and eq. 4's forces become C (alpha - d). Over one GNSS interval the steering is a ramp (the least-squares
 line through the faster steering stream); a constant delta is the special case of rate 0.
 A discretisation maps M to E(dt), x_{k+1} = E[:n, :n] x_k + E[:n, n] delta_start + E[:n, n+1]
 delta_rate:
@@ -32,6 +35,7 @@ from transplanter_ident.config.parameters import VehicleParams
 from transplanter_ident.ekf.layout import (
     EULER,
     EXACT,
+    N_LAG,
     N_MOTION_HEADING,
     N_MOTION_YAW_RATE,
     VEH_IZ,
@@ -64,8 +68,9 @@ SCALING_NORM = 0.5
 
 
 def vehicle_array(vehicle: VehicleParams) -> np.ndarray:
-    """Pack the vehicle constants for the compiled kernels."""
-    return np.array([vehicle.mass, vehicle.lf, vehicle.lr, vehicle.yaw_inertia], dtype=np.float64)
+    """Pack the vehicle constants for the compiled kernels (layout.VEH_*)."""
+    return np.array([vehicle.mass, vehicle.lf, vehicle.lr, vehicle.yaw_inertia, vehicle.relaxation_length],
+                    dtype=np.float64)
 
 
 def work_buffer() -> np.ndarray:
@@ -74,16 +79,18 @@ def work_buffer() -> np.ndarray:
 
 
 @inline_kernel
-def continuous_matrix(cf, cr, vx, vehicle, with_heading, ws):
-    """Fill M (eq. 4) and dM/dCf, dM/dCr, dM/dvx over [motion states, delta, d delta/dt] in ws.
+def continuous_matrix(cf, cr, vx, vehicle, with_heading, lagged, relaxation, ws):
+    """Fill M (eq. 4) and dM/dCf, dM/dCr, dM/dvx over [motion states, (d_f, d_r), delta, d delta/dt] in ws.
 
-    Size nd + 2 with nd = 3 (vy, r, psi) in heading mode, else 2 (vy, r). The steering angle
+    Size nd + 2 with nd = 3 (vy, r, psi) in heading mode, else 2 (vy, r), plus N_LAG ``lagged``
+    (the slip lags of tires that relax over ``relaxation`` m; 0: their rows and columns stay zero,
+    the lags held and the forces as in eq. 4). The steering angle
     is an extra state whose derivative is the (constant) steering rate, so one matrix
     exponential yields the response to a steering ramp over the interval. The discretisation
     reads only rows < nd (``mul_top`` takes the input rows [[0, 1], [0, 0]] as arguments).
     """
     mass, lf, lr, iz = vehicle[VEH_MASS], vehicle[VEH_LF], vehicle[VEH_LR], vehicle[VEH_IZ]
-    nd = N_MOTION_HEADING if with_heading else N_MOTION_YAW_RATE
+    nd = (N_MOTION_HEADING if with_heading else N_MOTION_YAW_RATE) + (N_LAG if lagged else 0)
     for i in range(nd + 2):  # M is (nd + 2) square; the rest of the slot is not part of it
         for j in range(nd + 2):
             ws[W_M, i, j] = 0.0
@@ -116,10 +123,39 @@ def continuous_matrix(cf, cr, vx, vehicle, with_heading, ws):
     ws[W_DM_V, 0, 1] = -1.0 + (cf * lf - cr * lr) * a / vx
     if with_heading:
         ws[W_M, 2, 1] = 1.0
+    if lagged and relaxation > 0.0:
+        lag_rows(cf, cr, vx, lf, lr, mass, iz, relaxation, nd - N_LAG, ws)
 
 
-def _make_discretize(nd):
-    """Compile the discretisation for nd motion states (sizes become compile-time constants)."""
+@inline_kernel
+def lag_rows(cf, cr, vx, lf, lr, mass, iz, sigma, first, ws):
+    """The slip lags' columns in the force rows and their own rows (d_f at ``first``, d_r after it).
+
+    The forces are 2 C (alpha - d); d' = alpha' - (vx / sigma) d with alpha_f = delta - (vy + lf r) / vx
+    and alpha_r = (lr r - vy) / vx, so d's rows are those combinations of the vy and r rows (over
+    every column: d, delta) plus delta' (front) and -vx / sigma on the diagonal.
+    """
+    f, r = first, first + 1
+    ws[W_M, 0, f], ws[W_M, 0, r] = -2.0 * cf / mass, -2.0 * cr / mass
+    ws[W_M, 1, f], ws[W_M, 1, r] = -2.0 * cf * lf / iz, 2.0 * cr * lr / iz
+    ws[W_DM_F, 0, f], ws[W_DM_F, 1, f] = -2.0 / mass, -2.0 * lf / iz
+    ws[W_DM_R, 0, r], ws[W_DM_R, 1, r] = -2.0 / mass, 2.0 * lr / iz
+    for j in range(first + 4):  # every column: motion, lags, delta, delta' (rows 0, 1 are complete)
+        for slot in (W_M, W_DM_F, W_DM_R, W_DM_V):
+            ws[slot, f, j] = -(ws[slot, 0, j] + lf * ws[slot, 1, j]) / vx
+            ws[slot, r, j] = (lr * ws[slot, 1, j] - ws[slot, 0, j]) / vx
+        ws[W_DM_V, f, j] -= ws[W_M, f, j] / vx  # d/dvx of (row / vx): (d row / dvx) / vx - row / vx^2
+        ws[W_DM_V, r, j] -= ws[W_M, r, j] / vx
+    ws[W_M, f, first + 3] += 1.0  # alpha_f' holds delta'
+    ws[W_M, f, f] -= vx / sigma
+    ws[W_M, r, r] -= vx / sigma
+    ws[W_DM_V, f, f] -= 1.0 / sigma
+    ws[W_DM_V, r, r] -= 1.0 / sigma
+
+
+def _make_discretize(motion, lagged):
+    """Compile the discretisation for ``motion`` states (and the slip lags): sizes become compile-time constants."""
+    nd = motion + (N_LAG if lagged else 0)  # the rows the filter's state carries
     size = nd + 2
 
     @inline_kernel
@@ -155,8 +191,8 @@ def _make_discretize(nd):
             mul_top(ws, left, right_v, W_NDT_V, 0.0, 0.0, 0.0, True)
 
     @sized_kernel
-    def discretize_fixed(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, with_v, ws):
-        continuous_matrix(cf, cr, vx, vehicle, nd == N_MOTION_HEADING, ws)
+    def discretize_fixed(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, with_v, relaxation, ws):
+        continuous_matrix(cf, cr, vx, vehicle, motion == N_MOTION_HEADING, lagged, relaxation, ws)
         for i in range(nd):
             for j in range(size):
                 ws[W_DM_F, i, j] *= dcf_dtheta
@@ -222,8 +258,10 @@ def _make_discretize(nd):
     return discretize_fixed
 
 
-discretize_yaw_rate = _make_discretize(N_MOTION_YAW_RATE)
-discretize_heading = _make_discretize(N_MOTION_HEADING)
+discretize_yaw_rate = _make_discretize(N_MOTION_YAW_RATE, False)
+discretize_heading = _make_discretize(N_MOTION_HEADING, False)
+discretize_yaw_rate_lagged = _make_discretize(N_MOTION_YAW_RATE, True)
+discretize_heading_lagged = _make_discretize(N_MOTION_HEADING, True)
 
 
 @entry_kernel
@@ -236,9 +274,9 @@ def discretize(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, with_heading, me
     ``with_v`` (the speed's noise in Q); else ws[W_DE_V] holds nothing meaningful. ws: :func:`work_buffer`.
     """
     if with_heading:
-        discretize_heading(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, with_v, ws)
+        discretize_heading(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, with_v, 0.0, ws)
     else:
-        discretize_yaw_rate(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, with_v, ws)
+        discretize_yaw_rate(cf, cr, dcf_dtheta, dcr_dtheta, vx, dt, vehicle, method, with_v, 0.0, ws)
 
 
 def discrete_matrices(
@@ -263,6 +301,6 @@ def discrete_matrices(
 def steady_state_yaw_rate(vehicle: VehicleParams, cf: float, cr: float, speed: float, steering: float) -> float:
     """Steady-state yaw rate of eq. (4) for a constant steering angle."""
     ws = work_buffer()
-    continuous_matrix(cf, cr, speed, vehicle_array(vehicle), False, ws)
+    continuous_matrix(cf, cr, speed, vehicle_array(vehicle), False, False, 0.0, ws)
     a, b = ws[W_M, :2, :2], ws[W_M, :2, 2]
     return float(np.linalg.solve(a, -b * steering)[1])

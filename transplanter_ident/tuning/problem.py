@@ -64,11 +64,14 @@ from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions,
 from transplanter_ident.ekf.entries import (
     kernels_for,
     objective_heading,
+    objective_heading_lagged,
     objective_kernel,
     objective_yaw_rate,
+    objective_yaw_rate_lagged,
 )
 from transplanter_ident.ekf.joint_ekf import FilterArrays, kernel_input
 from transplanter_ident.ekf.layout import (
+    HEADING_LAG_STATES,
     HEADING_STATES,
     MAE,
     N_MEMO,
@@ -79,6 +82,7 @@ from transplanter_ident.ekf.layout import (
     X_THETA_F,
     X_THETA_R,
     X_VY,
+    YAW_RATE_LAG_STATES,
     YAW_RATE_STATES,
 )
 from transplanter_ident.epochs.epoch import EpochArrays
@@ -257,7 +261,27 @@ def _batch_heading(epochs, x0, p0, vehicle, settings, qs, rs, kind):  # noqa: AN
     return values
 
 
-_BATCH = {YAW_RATE_STATES: _batch_yaw_rate, HEADING_STATES: _batch_heading}
+@parallel_entry_kernel
+def _batch_yaw_rate_lagged(epochs, x0, p0, vehicle, settings, qs, rs, kind):  # noqa: ANN001, ANN202
+    values = np.empty(qs.shape[0])
+    for i in numba.prange(qs.shape[0]):
+        values[i] = objective_yaw_rate_lagged(epochs.copy(), x0.copy(), p0.copy(), np.zeros(N_MODEL),
+                                              np.zeros(N_MEMO), vehicle.copy(), settings.copy(), qs[i].copy(),
+                                              rs[i].copy(), kind)
+    return values
+
+
+@parallel_entry_kernel
+def _batch_heading_lagged(epochs, x0, p0, vehicle, settings, qs, rs, kind):  # noqa: ANN001, ANN202
+    values = np.empty(qs.shape[0])
+    for i in numba.prange(qs.shape[0]):
+        values[i] = objective_heading_lagged(epochs.copy(), x0.copy(), p0.copy(), np.zeros(N_MODEL), np.zeros(N_MEMO),
+                                             vehicle.copy(), settings.copy(), qs[i].copy(), rs[i].copy(), kind)
+    return values
+
+
+_BATCH = {YAW_RATE_STATES: _batch_yaw_rate, HEADING_STATES: _batch_heading,
+          YAW_RATE_LAG_STATES: _batch_yaw_rate_lagged, HEADING_LAG_STATES: _batch_heading_lagged}
 
 
 def batch_objective(epochs, x0, p0, vehicle, settings, qs, rs, kind):  # noqa: ANN001, ANN201

@@ -1,0 +1,133 @@
+"""The prediction of eq. (12): the state and the open-loop model over one GNSS interval (eqs. 4, 10, 13).
+
+:func:`make_prediction` compiles, for one state size, the three helpers of the filter step
+(:mod:`.kernels`) that know what the motion states are: their reset from a measurement, the
+stiffness a state holds, and the prediction through :mod:`.model`'s discretisation, with its
+Jacobian F = df/dx (eq. 13) and df/dvx. With relaxing tires the slip lags d_f, d_r follow the motion
+states (layout.N_LAG).
+"""
+
+from __future__ import annotations
+
+import math
+
+from transplanter_ident.ekf.layout import (
+    EULER,
+    HEADING_STATES,
+    N_LAG,
+    N_MOTION_HEADING,
+    N_MOTION_YAW_RATE,
+    S_ANTENNA_X,
+    S_LOG,
+    S_METHOD,
+    S_P0_PSI,
+    S_P0_R,
+    S_P0_VY,
+    S_SPEED_NOISE,
+    V_NEW_MODEL,
+    V_NEW_X,
+    V_SPEED_GAIN,
+    W_DE_F,
+    W_DE_R,
+    W_DE_V,
+    W_E,
+    W_F,
+    W_VEC,
+    X_PSI,
+    X_R,
+    X_VY,
+    YAW_RATE_STATES,
+)
+from transplanter_ident.ekf.model import (
+    discretize_heading,
+    discretize_heading_lagged,
+    discretize_yaw_rate,
+    discretize_yaw_rate_lagged,
+)
+from transplanter_ident.jit import inline_kernel
+
+
+def make_prediction(heading, lagged):  # noqa: ANN001, ANN201 - numba closures
+    """(reset_motion, stiffness, predict_n) for the heading or yaw_rate filter, with or without the slip lags."""
+    lag = N_LAG if lagged else 0
+    n = (HEADING_STATES if heading else YAW_RATE_STATES) + lag
+    nd = (N_MOTION_HEADING if heading else N_MOTION_YAW_RATE) + lag  # motion states and slip lags
+    nf, nr, nb = nd, nd + 1, nd + 2  # theta_f, theta_r, steering offset
+    if lagged:
+        discretize_n = discretize_heading_lagged if heading else discretize_yaw_rate_lagged
+    else:
+        discretize_n = discretize_heading if heading else discretize_yaw_rate
+
+    @inline_kernel
+    def reset_motion(x, p, model, settings, vy_antenna, psi, yaw_rate):
+        """Take the motion states from the measurement, slip lags 0 (a steady turn); keep the parameter states."""
+        vy = vy_antenna - settings[S_ANTENNA_X] * yaw_rate
+        x[X_VY] = vy
+        x[X_R] = yaw_rate
+        model[X_VY] = vy
+        model[X_R] = yaw_rate
+        model[X_PSI] = psi
+        if heading:
+            x[X_PSI] = psi
+        for i in range(nd - lag, nd):
+            x[i] = 0.0
+            model[i] = 0.0
+        for i in range(nd):
+            for j in range(n):
+                p[i, j] = 0.0
+                p[j, i] = 0.0
+        p[X_VY, X_VY] = settings[S_P0_VY]
+        p[X_R, X_R] = settings[S_P0_R]
+        if heading:
+            p[X_PSI, X_PSI] = settings[S_P0_PSI]
+
+    @inline_kernel
+    def stiffness(x, settings, k):
+        """C of theta_f (k = 0) or theta_r (k = 1), and dC/dtheta."""
+        if settings[S_LOG] > 0.5:
+            c = math.exp(x[nf + k])
+            return c, c
+        return x[nf + k], 1.0
+
+    @inline_kernel
+    def predict_n(x, model, vehicle, settings, dt, speed, steering, steering_rate, relaxation, ws):
+        """X <- f(x, u), model <- f(model, u); F = df/dx into ws[W_F], df/dvx into ws[W_VEC, V_SPEED_GAIN].
+
+        The wheel angle is the sensor's minus the offset b: a ramp from (mean - b) - rate dt / 2
+        (``exact``) or the held mean - b (``euler``), so df/db = -E[:, delta]. ``relaxation``: the
+        tires' relaxation length the slip lags follow (0: held, the forces as in eq. 4).
+        """
+        cf, dcf = stiffness(x, settings, 0)
+        cr, dcr = stiffness(x, settings, 1)
+        method = int(settings[S_METHOD])
+        speed_noise = settings[S_SPEED_NOISE] > 0.5  # dx/dvx only when the speed's noise enters Q
+        discretize_n(cf, cr, dcf, dcr, speed, dt, vehicle, method, speed_noise, relaxation, ws)
+        level = steering - x[nb]
+        if method != EULER:
+            level -= 0.5 * dt * steering_rate
+        for i in range(nd, n):  # the parameter rows (random walks); the motion rows are written below
+            for j in range(n):
+                ws[W_F, i, j] = 1.0 if i == j else 0.0
+        for i in range(nd):
+            acc = ws[W_E, i, nd] * level + ws[W_E, i, nd + 1] * steering_rate
+            acc_f = ws[W_DE_F, i, nd] * level + ws[W_DE_F, i, nd + 1] * steering_rate
+            acc_r = ws[W_DE_R, i, nd] * level + ws[W_DE_R, i, nd + 1] * steering_rate
+            acc_v = ws[W_DE_V, i, nd] * level + ws[W_DE_V, i, nd + 1] * steering_rate
+            acc_m = acc
+            for j in range(nd):
+                acc += ws[W_E, i, j] * x[j]
+                acc_f += ws[W_DE_F, i, j] * x[j]
+                acc_r += ws[W_DE_R, i, j] * x[j]
+                acc_v += ws[W_DE_V, i, j] * x[j]
+                acc_m += ws[W_E, i, j] * model[j]
+                ws[W_F, i, j] = ws[W_E, i, j]
+            ws[W_F, i, nf] = acc_f
+            ws[W_F, i, nr] = acc_r
+            ws[W_F, i, nb] = -ws[W_E, i, nd]
+            ws[W_VEC, V_NEW_X, i], ws[W_VEC, V_NEW_MODEL, i] = acc, acc_m
+            ws[W_VEC, V_SPEED_GAIN, i] = acc_v if speed_noise else 0.0
+        for i in range(nd):
+            x[i] = ws[W_VEC, V_NEW_X, i]
+            model[i] = ws[W_VEC, V_NEW_MODEL, i]
+
+    return reset_motion, stiffness, predict_n
