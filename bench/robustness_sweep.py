@@ -103,6 +103,12 @@ ROWS: dict[str, dict[str, object]] = {
     "tire relaxation 0.6 m": {"relaxation_length": 0.6},
     "tire relaxation 0.3 m, 1 m/s": {"relaxation_length": 0.3, "speed": 1.0},
     "tire relaxation 0.3 m, 3 m/s": {"relaxation_length": 0.3, "speed": 3.0},
+    "tire relaxation 0.1 m, vehicle.relaxation_length set": {"relaxation_length": 0.1,
+                                                             "filter_vehicle": VehicleParams(relaxation_length=0.1)},
+    "tire relaxation 0.3 m, vehicle.relaxation_length set": {"relaxation_length": 0.3,
+                                                             "filter_vehicle": VehicleParams(relaxation_length=0.3)},
+    "tire relaxation 0.6 m, vehicle.relaxation_length set": {"relaxation_length": 0.6,
+                                                             "filter_vehicle": VehicleParams(relaxation_length=0.6)},
     "side slope 2 deg": {"bank_angle": DEG(2.0)},
     "side slope 5 deg": {"bank_angle": DEG(5.0)},
     "heavier, longer vehicle": {"vehicle": VehicleParams(mass=1400.0, lf=0.9, lr=0.6)},
@@ -119,6 +125,8 @@ INDEPENDENT_ROWS: dict[str, dict[str, object]] = {
     "independent sim, Magic Formula mu 0.8": {},
     "independent sim, Magic Formula mu 0.3": {"friction": 0.3},
     "independent sim, relaxation 0.3 m": {"relaxation_length": 0.3},
+    "independent sim, relaxation 0.3 m, set": {"relaxation_length": 0.3,
+                                               "filter_vehicle": VehicleParams(relaxation_length=0.3)},
 }
 ALL_ROWS = {**ROWS, **INDEPENDENT_ROWS}
 
@@ -126,9 +134,9 @@ ALL_ROWS = {**ROWS, **INDEPENDENT_ROWS}
 def drive(name: str, seed: int) -> tuple[SimResult, VehicleParams]:
     """One seed of a row: (sensor samples and truth, the vehicle constants the estimator is configured with)."""
     overrides = dict(ALL_ROWS[name])
-    if name in INDEPENDENT_ROWS:
-        return independent_drive(seed, **overrides), VehicleParams()
     told = overrides.pop("filter_vehicle", None)  # the estimator configured with other vehicle constants
+    if name in INDEPENDENT_ROWS:
+        return independent_drive(seed, **overrides), told or VehicleParams()
     sim = sine_drive(seed, **overrides)
     return simulate(sim), told or sim.vehicle
 

@@ -144,8 +144,8 @@ SCHEMA: tuple[Param, ...] = (
     _float("vehicle.track_width", 0.0, "m", "front track, for a steering sensor on one wheel", 0.0, 10.0),
     _float("vehicle.relaxation_length", 0.0, "m", "the tires' relaxation length: each axle's lateral force builds "
            "over this much travel (0: at once, the paper's eq. 4). With it the filter carries the slip lags of both "
-           "axles; 0.3 m left out biases Cf by about +12 % at 2 m/s (README). tuner --estimate-relaxation finds it",
-           0.0, 5.0),
+           "axles; 0.3 m left out biases Cf by about +12 % at 2 m/s while the estimate stays valid (README). Of the "
+           "order of the tire's radius; from the tire's data or a rolling test", 0.0, 5.0),
     _float("vehicle.heading_offset", 0.0, "rad", "yaw of the GNSS heading source relative to the vehicle x axis, "
            "counter-clockwise (subtracted from the heading): e.g. +1.5708 for a dual-antenna baseline pointing to "
            "the left; for one nav_msgs/Odometry topic serving velocity and heading it turns the twist too",

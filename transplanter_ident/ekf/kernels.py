@@ -155,7 +155,7 @@ def make_kernels(heading, lagged=False):
     h1 = X_PSI if heading else X_R  # second measured state
     propagate_covariance, add_speed_noise, joseph_update = make_update(n, nd, h1)
 
-    reset_motion, stiffness, predict_n = make_prediction(heading, lagged)
+    reset_motion, stiffness, predict_n, add_lag_noise = make_prediction(heading, lagged)
 
     @called_kernel
     def write_outputs(x, p, memo, settings, status, r_model, vy_model, out):
@@ -272,6 +272,8 @@ def make_kernels(heading, lagged=False):
         scale_f = 1.0 if settings[S_LOG] > 0.5 else x[nf]
         scale_r = 1.0 if settings[S_LOG] > 0.5 else x[nr]
         propagate_covariance(p, q, dt, adapting, settings, (scale_f, scale_r), ws)
+        if relaxation > 0.0:
+            add_lag_noise(p, q, dt, speed, vehicle)
         if settings[S_SPEED_NOISE] > 0.5:  # the interval's speed: the mean of two GNSS samples
             add_speed_noise(p, 0.5 * r_noise[Z_VY] * noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY), ws)
 

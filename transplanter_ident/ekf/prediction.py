@@ -27,6 +27,8 @@ from transplanter_ident.ekf.layout import (
     V_NEW_MODEL,
     V_NEW_X,
     V_SPEED_GAIN,
+    VEH_LF,
+    VEH_LR,
     W_DE_F,
     W_DE_R,
     W_DE_V,
@@ -48,7 +50,7 @@ from transplanter_ident.jit import inline_kernel
 
 
 def make_prediction(heading, lagged):  # noqa: ANN001, ANN201 - numba closures
-    """(reset_motion, stiffness, predict_n) for the heading or yaw_rate filter, with or without the slip lags."""
+    """(reset_motion, stiffness, predict_n, add_lag_noise) for the heading or yaw_rate filter, with or without the lags."""
     lag = N_LAG if lagged else 0
     n = (HEADING_STATES if heading else YAW_RATE_STATES) + lag
     nd = (N_MOTION_HEADING if heading else N_MOTION_YAW_RATE) + lag  # motion states and slip lags
@@ -130,4 +132,24 @@ def make_prediction(heading, lagged):  # noqa: ANN001, ANN201 - numba closures
             x[i] = ws[W_VEC, V_NEW_X, i]
             model[i] = ws[W_VEC, V_NEW_MODEL, i]
 
-    return reset_motion, stiffness, predict_n
+    @inline_kernel
+    def add_lag_noise(p, q, dt, speed, vehicle):
+        """The motion noise's share of the slip lags: P += (G - I) Q dt (G - I)^T + cross terms, Q on [vy, r].
+
+        A disturbance that changes vy or r changes the slip at once and the force only over the lag,
+        so it moves d = alpha - F / C with it: d_f by -(dvy + lf dr) / vx, d_r by (lr dr - dvy) / vx.
+        """
+        lf, lr = vehicle[VEH_LF], vehicle[VEH_LR]
+        first = nd - lag
+        g_vy = (-1.0 / speed, -1.0 / speed)  # d_f, d_r per unit vy disturbance
+        g_r = (-lf / speed, lr / speed)
+        q_vy, q_r = q[X_VY] * dt, q[X_R] * dt
+        for a in range(lag):
+            p[first + a, X_VY] += g_vy[a] * q_vy
+            p[X_VY, first + a] += g_vy[a] * q_vy
+            p[first + a, X_R] += g_r[a] * q_r
+            p[X_R, first + a] += g_r[a] * q_r
+            for b in range(lag):
+                p[first + a, first + b] += g_vy[a] * g_vy[b] * q_vy + g_r[a] * g_r[b] * q_r
+
+    return reset_motion, stiffness, predict_n, add_lag_noise
