@@ -29,6 +29,7 @@ from transplanter_ident.ekf.layout import (
     W_DE_R,
     W_DE_V,
     W_E,
+    X_THETA_F,
     YAW_RATE_LAG_STATES,
 )
 from transplanter_ident.ekf.model import (
@@ -151,3 +152,19 @@ def test_the_independent_simulators_relaxing_drives_are_right() -> None:
                                       epochs_of)
     assert figures.valid >= 0.7 and figures.missed <= 0.05
     assert np.median(figures.finals) <= 0.03 and max(figures.finals) <= 0.06
+
+
+def test_a_restored_state_keeps_its_covariance_when_the_lags_start() -> None:
+    """The lag-free start's covariance goes back to P0 when the lags start; a restored learned state's does not."""
+    config = EstimatorConfig(vehicle=VehicleParams(relaxation_length=0.3))
+    epochs = epochs_of(simulate(sine_drive(0, duration=40.0, relaxation_length=0.3)))
+    learner = JointEKF(config)
+    for i in range(len(epochs)):
+        learner.step(epochs[i])
+    learned = learner.learned_state(float(epochs.t[-1]))
+    restored = JointEKF(config)
+    restored.restore(learned)
+    for i in range(5):
+        restored.step(epochs[i])
+    variance = restored.covariance[X_THETA_F, X_THETA_F]
+    assert variance <= 2.0 * learned.covariance[0][0] < 0.01  # P0 of ln Cf is 4.0
