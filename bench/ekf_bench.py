@@ -18,7 +18,9 @@ default ``heading`` mode (5 states, z = [vy, psi]). The innovation gate is opene
 1e12) so every step does the full update, as the C does.
 
 Rows: euler/linear (eq. 10, the paper's model), exact/log (the default model), and extra
-exact/log/heading (the default measurement) plus the parallel batch (``tuning.batch_objective``,
+exact/log/heading (the default measurement), the same with relaxing tires (``vehicle.relaxation_length``:
+two more states, a larger matrix exponential; the lags start once the stiffness is known, as they
+do on this sequence), plus the parallel batch (``tuning.batch_objective``,
 all threads), which the tuner actually uses, as ns per candidate-step.
 
 Run: ``python bench/ekf_bench.py [--repeats N] [--steps N]``; ``bench/run.py`` calls :func:`main`.
@@ -44,7 +46,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams  # noqa: E402
+from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams, VehicleParams  # noqa: E402
 from transplanter_ident.ekf import entries, joint_ekf, layout  # noqa: E402
 from transplanter_ident.tuning.problem import batch_objective  # noqa: E402
 
@@ -62,12 +64,14 @@ class Case:
     stiffness_state: str
     measurement: str
     reference: str | None  # C model to compare with
+    relaxation: float = 0.0  # m, vehicle.relaxation_length (the slip lags in the state)
 
 
 CASES = (
     Case("euler/linear, z=[vy,r] (paper eq. 10)", "euler", "linear", "yaw_rate", "euler"),
     Case("exact/log, z=[vy,r]", "exact", "log", "yaw_rate", "exact"),
     Case("exact/log, z=[vy,psi] (default, extra)", "exact", "log", "heading", None),
+    Case("  with relaxing tires, 0.3 m (extra)", "exact", "log", "heading", None, 0.3),
 )
 
 
@@ -92,7 +96,8 @@ def filter_arrays(case: Case) -> joint_ekf.FilterArrays:
                             measurement=case.measurement, gate_threshold=1.0e12)
     p0 = 1.0e6 if linear else 4.0
     noise = NoiseParams(measurement_noise=(4.0e-4, 1.0e-4), initial_covariance=(1.0e-2, 1.0e-2, p0, p0))
-    return joint_ekf.FilterArrays.from_config(EstimatorConfig(options=options, noise=noise))
+    vehicle = VehicleParams(relaxation_length=case.relaxation)
+    return joint_ekf.FilterArrays.from_config(EstimatorConfig(vehicle=vehicle, options=options, noise=noise))
 
 
 def candidate_q(case: Case, arrays: joint_ekf.FilterArrays, i: int) -> np.ndarray:
