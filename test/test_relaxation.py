@@ -14,7 +14,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from drives import pooled_validity_figures, sine_drive
+from drives import pooled_validity_figures, run_drive, sine_drive
 from independent_sim import independent_drive
 from scipy.linalg import expm
 from test_validity import epochs_of
@@ -29,7 +29,6 @@ from transplanter_ident.ekf.layout import (
     W_DE_R,
     W_DE_V,
     W_E,
-    X_THETA_F,
     YAW_RATE_LAG_STATES,
 )
 from transplanter_ident.ekf.model import (
@@ -38,9 +37,12 @@ from transplanter_ident.ekf.model import (
     vehicle_array,
     work_buffer,
 )
+from transplanter_ident.sim.signals import field_work
 from transplanter_ident.sim.simulator import simulate
 
 SEEDS = range(6)
+_STEERING, _SPEED = field_work()  # rows at 2 m/s, +-2 deg; U-turns at 1.2 m/s, 30 deg (bench/robustness_sweep.py)
+FIELD_WORK = {"duration": 300.0, "steering": _STEERING, "speed_profile": _SPEED}
 
 
 def obvious_matrix(vehicle: np.ndarray, cf: float, cr: float, vx: float, sigma: float, heading: bool) -> np.ndarray:
@@ -135,8 +137,8 @@ def relaxing_drives(configured: float, seeds: range = SEEDS) -> list:
 def test_a_configured_relaxation_length_makes_relaxing_drives_right() -> None:
     """0.3 m of relaxation at 2 m/s, seeds 0-5: right and valid with the length configured, wrong without.
 
-    Configured: valid in >= 70 % of the epochs (measured 95 %), <= 5 % of those outside +-2 sigma (0),
-    final |error| median <= 3 % (1.1 %) and worst <= 6 % (3.0 %). Not configured (seeds 0-2, so that
+    Configured: valid in >= 70 % of the epochs (measured 94 %), <= 5 % of those outside +-2 sigma (0),
+    final |error| median <= 3 % (1.0 %) and worst <= 6 % (3.4 %). Not configured (seeds 0-2, so that
     this test can fail): >= 50 % of the valid epochs outside +-2 sigma (measured 82 % over seeds 0-5).
     """
     told = pooled_validity_figures(relaxing_drives(0.3), epochs_of)
@@ -149,8 +151,8 @@ def test_a_configured_relaxation_length_makes_relaxing_drives_right() -> None:
 def test_the_independent_simulators_relaxing_drives_are_right() -> None:
     """The independent simulator's force lag (0.3 m, Magic Formula mu 0.8), seeds 0-3, the length configured.
 
-    Required: valid in >= 70 % of the epochs (measured 90 % over seeds 0-5), <= 5 % outside +-2 sigma (0),
-    final |error| median <= 3 % (1.2 %), worst <= 6 % (3.0 %).
+    Required: valid in >= 70 % of the epochs (measured 89 %), <= 5 % outside +-2 sigma (0), final |error|
+    median <= 3 % (1.3 %), worst <= 6 % (3.1 %).
     """
     config = EstimatorConfig(vehicle=VehicleParams(relaxation_length=0.3))
     figures = pooled_validity_figures([(independent_drive(seed, relaxation_length=0.3), config) for seed in range(4)],
@@ -159,17 +161,19 @@ def test_the_independent_simulators_relaxing_drives_are_right() -> None:
     assert np.median(figures.finals) <= 0.03 and max(figures.finals) <= 0.06
 
 
-def test_a_restored_state_keeps_its_covariance_when_the_lags_start() -> None:
-    """The lag-free start's covariance goes back to P0 when the lags start; a restored learned state's does not."""
-    config = EstimatorConfig(vehicle=VehicleParams(relaxation_length=0.3))
-    epochs = epochs_of(simulate(sine_drive(0, duration=40.0, relaxation_length=0.3)))
-    learner = JointEKF(config)
-    for i in range(len(epochs)):
-        learner.step(epochs[i])
-    learned = learner.learned_state(float(epochs.t[-1]))
-    restored = JointEKF(config)
-    restored.restore(learned)
-    for i in range(5):
-        restored.step(epochs[i])
-    variance = restored.covariance[X_THETA_F, X_THETA_F]
-    assert variance <= 2.0 * learned.covariance[0][0] < 0.01  # P0 of ln Cf is 4.0
+def test_relaxing_drives_at_changing_speed_stay_right() -> None:
+    """Field work (rows at 2 m/s, headland U-turns at 1.2 m/s) on tires relaxing over 0.3 m, the length set.
+
+    The lag d = alpha - F / C is carried to each interval's speed (alpha holds 1 / vx, the force does
+    not jump): without that, the speed-ups after the turns threw the estimate (final error median 138 %,
+    worst 199 %, seeds 0-5). Required over seeds 0-3: final |error| median <= 6 % (measured 4.2 %; 2.4 %
+    over seeds 0-5) and worst <= 12 % (9.8 %); unset, seeds 0-5 end at 6.0 / 14.5 %. Never valid
+    either way (field work's headland bias, README).
+    """
+    finals = []
+    for seed in range(4):
+        sim = sine_drive(seed, relaxation_length=0.3, **FIELD_WORK)
+        config = EstimatorConfig(vehicle=dataclasses.replace(sim.vehicle, relaxation_length=0.3))
+        finals.extend(abs(e) for e in run_drive(simulate(sim), config).final_errors())
+    assert np.median(finals) <= 0.06 and max(finals) <= 0.12
+

@@ -24,7 +24,6 @@ from transplanter_ident.ekf.layout import (
     EPOCH_COLUMNS,
     EULER,
     EXACT,
-    M_LAG_ACTIVE,
     M_NOISE_SPAN_SECOND,
     M_NOISE_VY,
     MAE,
@@ -242,7 +241,6 @@ class JointEKF:
             self.state[X_OFFSET] = learned.offset
         index = np.ix_(PARAMETER_STATES, PARAMETER_STATES)
         self.covariance[index] = block
-        self._memo[M_LAG_ACTIVE] = 1.0  # learned with the slip lags (if any): no lag-free start to forget
         self._guard.trust_restored()
         self._schedule.close()  # a learned state is linearised where it was learned
         self._taken = []

@@ -19,8 +19,7 @@ Beyond the paper (DESIGN.md section 7):
 * the speed input is the GNSS's, with its noise: Q holds it through dx/dvx (``ekf.speed_noise``);
 * relaxing tires (``vehicle.relaxation_length``): the slip lags of both axles follow the motion states,
   modelled once both stiffnesses are known (before, from a prior far off, their weaker response
-  throws the stiffness to its bounds); the parameters' covariance then goes back to P0, since the
-  lag-free start has narrowed it around a biased stiffness (+12 % at 0.3 m, 2 m/s).
+  throws the stiffness to its bounds), and carried to each interval's speed (:mod:`.prediction`).
 
 Alongside the filter runs the *model output* of the paper's Figs. 6-7: the bicycle model driven by the
 measured steering and speed with the stiffness identified so far, open loop from the first measured state.
@@ -61,6 +60,7 @@ from transplanter_ident.ekf.layout import (
     M_GATED,
     M_INITIALISED,
     M_LAG_ACTIVE,
+    M_LAG_SPEED,
     M_NOISE_SECOND,
     M_NOISE_SPAN_SECOND,
     M_NOISE_SPAN_VY,
@@ -156,7 +156,7 @@ def make_kernels(heading, lagged=False):
     h1 = X_PSI if heading else X_R  # second measured state
     propagate_covariance, add_speed_noise, joseph_update = make_update(n, nd, h1)
 
-    reset_motion, stiffness, predict_n, add_lag_noise = make_prediction(heading, lagged)
+    reset_motion, stiffness, predict_n, carry_lags, add_lag_noise = make_prediction(heading, lagged)
 
     @called_kernel
     def write_outputs(x, p, memo, settings, status, r_model, vy_model, out):
@@ -193,10 +193,11 @@ def make_kernels(heading, lagged=False):
         memo[M_INITIALISED] = 1.0
         memo[M_GATED] = 0.0
         memo[M_DIVERGED] = 0.0
+        memo[M_LAG_SPEED] = 0.0  # the lags restart at 0, a steady turn at the next interval's speed
         write_outputs(x, p, memo, settings, status, yaw_rate, x[X_VY], out)
         return status
 
-    bounded, recover, reset_parameters = make_recovery(n, nd, MAX_VARIANCE, write_outputs, restart_motion)
+    bounded, recover = make_recovery(n, nd, MAX_VARIANCE, write_outputs, restart_motion)
 
     @inline_kernel
     def healthy(x, p, r_model, vy_model, nis):
@@ -260,13 +261,16 @@ def make_kernels(heading, lagged=False):
                                      stiffness(x, settings, 0)[0], stiffness(x, settings, 1)[0], out)
         known = known_to(x[nf], p[nf, nf], log_state) and known_to(x[nr], p[nr, nr], log_state)
         nonlinear = beyond and known
-        if lagged and known and memo[M_LAG_ACTIVE] < 0.5:  # the slip lags from now on (see the module docstring);
-            memo[M_LAG_ACTIVE] = 1.0  # what the lag-free start learned is biased: the parameters start again from P0
-            reset_parameters(x, p, settings)
+        if lagged and known:  # the slip lags from now on (see the module docstring)
+            memo[M_LAG_ACTIVE] = 1.0
 
         # 3.
         psi_model_before = model[X_PSI]
         relaxation = vehicle[VEH_RELAXATION] if lagged and memo[M_LAG_ACTIVE] > 0.5 else 0.0
+        if relaxation > 0.0:
+            if memo[M_LAG_SPEED] > 0.0:
+                carry_lags(x, p, model, memo[M_LAG_SPEED], speed, vehicle)
+            memo[M_LAG_SPEED] = speed
         predict_n(x, model, vehicle, settings, dt, speed, steering, steering_rate, relaxation, ws)
         r_model = (model[X_PSI] - psi_model_before) / dt if heading else model[X_R]
         vy_model = model[X_VY]

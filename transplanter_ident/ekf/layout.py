@@ -79,7 +79,8 @@ M_SATURATION_SCORE, M_SATURATION_INFORMATION = 29, 30
 M_SCALE_BIAS = 31  # memo[M_SCALE_BIAS + i]: the bias of state i per unit (relative) steering gain error
 # 1 once both stiffnesses were known (adaptation.known_to): the slip lags are modelled from then on (kernels.py)
 M_LAG_ACTIVE = M_SCALE_BIAS + MAX_STATES  # each bias block holds MAX_STATES slots
-N_MEMO = M_LAG_ACTIVE + 1
+M_LAG_SPEED = M_LAG_ACTIVE + 1  # m/s, the speed the slip lags were last predicted at (0: none since a reset)
+N_MEMO = M_LAG_SPEED + 1
 
 # the open-loop model's state: the filter's motion states and slip lags, [vy, r, psi, d_f, d_r] or [vy, r, d_f, d_r]
 N_MODEL = N_MOTION_HEADING + N_LAG

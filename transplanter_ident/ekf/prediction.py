@@ -50,7 +50,7 @@ from transplanter_ident.jit import inline_kernel
 
 
 def make_prediction(heading, lagged):  # noqa: ANN001, ANN201 - numba closures
-    """(reset_motion, stiffness, predict_n, add_lag_noise) for the heading or yaw_rate filter, with or without the lags."""
+    """(reset_motion, stiffness, predict_n, carry_lags, add_lag_noise) for one measurement mode, with or without lags."""
     lag = N_LAG if lagged else 0
     n = (HEADING_STATES if heading else YAW_RATE_STATES) + lag
     nd = (N_MOTION_HEADING if heading else N_MOTION_YAW_RATE) + lag  # motion states and slip lags
@@ -133,11 +133,32 @@ def make_prediction(heading, lagged):  # noqa: ANN001, ANN201 - numba closures
             model[i] = ws[W_VEC, V_NEW_MODEL, i]
 
     @inline_kernel
+    def carry_lags(x, p, model, previous_speed, speed, vehicle):
+        """The slip lags at a new interval's speed: the force F = C (alpha - d) carries on, alpha does not.
+
+        alpha_f = delta - (vy + lf r) / vx and alpha_r = (lr r - vy) / vx change with 1 / vx, so d changes
+        by as much: d_f += (vy + lf r) c, d_r += (vy - lr r) c with c = 1 / previous_speed - 1 / speed, in
+        x, in the open-loop model and in P (P = T P T^T for that linear map T).
+        """
+        c = 1.0 / previous_speed - 1.0 / speed
+        first = nd - lag
+        arms = (vehicle[VEH_LF], -vehicle[VEH_LR])
+        for a in range(lag):
+            x[first + a] += c * (x[X_VY] + arms[a] * x[X_R])
+            model[first + a] += c * (model[X_VY] + arms[a] * model[X_R])
+            for j in range(n):  # T P: the lag rows take c (row vy + arm row r)
+                p[first + a, j] += c * (p[X_VY, j] + arms[a] * p[X_R, j])
+        for a in range(lag):
+            for i in range(n):  # (T P) T^T: the lag columns likewise
+                p[i, first + a] += c * (p[i, X_VY] + arms[a] * p[i, X_R])
+
+    @inline_kernel
     def add_lag_noise(p, q, dt, speed, vehicle):
-        """The motion noise's share of the slip lags: P += (G - I) Q dt (G - I)^T + cross terms, Q on [vy, r].
+        """The motion noise's share of the slip lags: P += G Q dt G^T - Q dt, G = [I; g] over [vy, r].
 
         A disturbance that changes vy or r changes the slip at once and the force only over the lag,
-        so it moves d = alpha - F / C with it: d_f by -(dvy + lf dr) / vx, d_r by (lr dr - dvy) / vx.
+        so it moves d = alpha - F / C with it: d_f by -(dvy + lf dr) / vx, d_r by (lr dr - dvy) / vx
+        (g). The [vy, r] block itself is propagate_covariance's; this adds the lag rows and columns.
         """
         lf, lr = vehicle[VEH_LF], vehicle[VEH_LR]
         first = nd - lag
@@ -152,4 +173,4 @@ def make_prediction(heading, lagged):  # noqa: ANN001, ANN201 - numba closures
             for b in range(lag):
                 p[first + a, first + b] += g_vy[a] * g_vy[b] * q_vy + g_r[a] * g_r[b] * q_r
 
-    return reset_motion, stiffness, predict_n, add_lag_noise
+    return reset_motion, stiffness, predict_n, carry_lags, add_lag_noise

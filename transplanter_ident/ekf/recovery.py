@@ -44,9 +44,7 @@ MAX_DIVERGED = 5
 
 
 def make_recovery(n, nd, max_variance, write_outputs, restart_motion):  # noqa: ANN001, ANN201
-    """(``bounded``, ``recover``, ``reset_parameters``) for n states, nd of them motion.
-
-    The step's health test, its divergence branch, and the parameter states' covariance back to P0.
+    """(``bounded``, ``recover``): the step's health test and its divergence branch, for n states, nd of them motion.
 
     ``write_outputs`` and ``restart_motion`` are the step's own helpers (:func:`.kernels.make_kernels`).
     """
@@ -99,4 +97,4 @@ def make_recovery(n, nd, max_variance, write_outputs, restart_motion):  # noqa: 
             reset_parameters(x, p, settings)
         return restart_motion(x, p, model, memo, settings, StepStatus.RESTARTED, t, vy_antenna, psi, yaw_rate, out)
 
-    return bounded, recover, reset_parameters
+    return bounded, recover
