@@ -177,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="a FilterOptions field (number) to set, e.g. saturation_prior=0 (repeatable)")
     parser.add_argument("--validity", action="append", default=[], metavar="NAME=VALUE",
                         help="a ValiditySettings field (number) to set, e.g. max_autocorrelation=1 (repeatable)")
-    parser.add_argument("rows", nargs="*", help=f"rows to run (default: all): {', '.join(ALL_ROWS)}")
+    parser.add_argument("rows", nargs="*", help="rows to run (default: all): " + ", ".join(ALL_ROWS).replace("%", "%%"))
     args = parser.parse_args(argv)
     unknown = [r for r in args.rows if r not in ALL_ROWS]
     if unknown or args.seeds < 1:
