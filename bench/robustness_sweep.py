@@ -4,7 +4,7 @@ Not a test (the tests assert each claim on its own scenario). Each row is one co
 project's simulator (test/drives.py: 2 m/s, +-15 deg sine steer of 6 s, 5 Hz GNSS, 120 s, unless the
 row changes it), or the same drive from a simulator that shares no code with it
 (test/independent_sim.py: the "independent sim" rows) over ``--seeds`` seeds, filtered with the default parameters (the vehicle's own
-parameters where the row changes the vehicle; a row's ``filter_vehicle`` configures the estimator with
+parameters where the row changes the vehicle; a row's ``filter_vehicle`` (``filter_noise``) configures the estimator with
 other constants than the simulated vehicle's). From 30 s on it prints the share of epochs flagged
 valid, the share of valid epochs whose +-2 sigma band misses the truth (Cf or Cr) or whose error
 exceeds 10 %, the share of all epochs the band misses, and the final |error| (median, worst). A
@@ -32,6 +32,7 @@ from test_validity import epochs_of  # noqa: E402
 from transplanter_ident.config.parameters import (  # noqa: E402
     EstimatorConfig,
     FilterOptions,
+    NoiseParams,
     ValiditySettings,
     VehicleParams,
 )
@@ -48,6 +49,7 @@ DEG = math.radians
 NOISE = SensorNoise()
 FIELD_STEERING, FIELD_SPEED = field_work()  # rows at 2 m/s, +-2 deg; U-turns at 1.2 m/s, 30 deg
 SLOW_FIELD_STEERING, SLOW_FIELD_SPEED = field_work(row_speed=1.2, turn_speed=0.7)
+DROP = StiffnessSchedule(times=(0.0, 75.0), front=(8000.0, 4800.0), rear=(10000.0, 6000.0))  # a wet patch
 ROWS: dict[str, dict[str, object]] = {
     "clean": {},
     "1 m/s": {"speed": 1.0},
@@ -117,6 +119,12 @@ ROWS: dict[str, dict[str, object]] = {
                                      "tire": "saturating", "friction": 0.4},
     "field work, rows at 1.2 m/s": {"duration": 300.0, "steering": SLOW_FIELD_STEERING,
                                     "speed_profile": SLOW_FIELD_SPEED},
+    "stiffness drop -40 % at 75 s, 150 s": {"duration": 150.0, "stiffness": DROP},
+    "stiffness drop -40 %, GNSS noise 2x, R set to it": {
+        "duration": 150.0, "stiffness": DROP,
+        "noise": replace(NOISE, velocity=2.0 * NOISE.velocity, heading=2.0 * NOISE.heading),
+        "filter_noise": replace(NoiseParams(), measurement_noise=tuple(4.0 * r for r in
+                                                                       NoiseParams().measurement_noise))},
     "stiffness drifting -40 % over 4 min": {"duration": 240.0, "stiffness": StiffnessSchedule(
         times=(0.0, 240.0), front=(8000.0, 4800.0), rear=(10000.0, 6000.0), transition=240.0)},
 }
@@ -135,6 +143,7 @@ def drive(name: str, seed: int) -> tuple[SimResult, VehicleParams]:
     """One seed of a row: (sensor samples and truth, the vehicle constants the estimator is configured with)."""
     overrides = dict(ALL_ROWS[name])
     told = overrides.pop("filter_vehicle", None)  # the estimator configured with other vehicle constants
+    overrides.pop("filter_noise", None)  # the estimator's Q/R (row_figures)
     if name in INDEPENDENT_ROWS:
         return independent_drive(seed, **overrides), told or VehicleParams()
     sim = sine_drive(seed, **overrides)
@@ -146,7 +155,8 @@ def row_figures(name: str, seeds: int, options: FilterOptions, settings: Validit
     shares, finals = [], []
     for seed in range(seeds):
         result, told = drive(name, seed)
-        config = EstimatorConfig(vehicle=told, options=options)
+        config = EstimatorConfig(vehicle=told, options=options,
+                                 noise=ALL_ROWS[name].get("filter_noise", NoiseParams()))
         run = run_drive(result, config)
         valid = decide_sequence(config, settings, epochs_of(result, steering_scale=told.steering_scale), run.outputs)
         after = run.t >= 30.0

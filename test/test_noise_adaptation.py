@@ -50,9 +50,12 @@ def runs(velocity: float, heading: float, adaptation: bool = True) -> tuple:
 
 @pytest.mark.parametrize("factor", [2.0, 3.0])
 def test_noisier_gnss_keeps_the_estimate_and_its_band(factor: float) -> None:
-    """Median |error| <= 2 % x factor, final errors and epochs after 30 s >= 90 % within +-2 sigma, no late alarm.
+    """Median |error| <= 2 % x factor, final errors and epochs after 30 s >= 90 % within +-2 sigma, few late alarms.
 
-    The error grows with the noise's sigma, hence the factor. No change alarm after 30 s.
+    The error grows with the noise's sigma, hence the factor. At most one change alarm after 30 s over
+    the 10 drives (20 min; the constant-stiffness budget of test_real_sensors). Measured: none with the
+    change test of before (ekf.change_scale 4, threshold 12); one at 67 s (2x) with today's (2, 8), the
+    price of seeing a 40 % drop when R is set to sensors 2x noisier (robustness sweep).
 
     While R is still being learned (the first seconds) the innovations are larger than the filter allows,
     and the change test may fire: that re-opens the stiffness band when it is most needed. Off, the same
@@ -65,7 +68,7 @@ def test_noisier_gnss_keeps_the_estimate_and_its_band(factor: float) -> None:
     assert np.mean(np.asarray(z) <= 2.0) >= 0.90, z
     front, rear = pooled_coverage(list(adapted), 30.0)
     assert front >= 0.90 and rear >= 0.90, (front, rear)
-    assert sum(r.alarms_between(30.0, math.inf) for r in adapted) == 0
+    assert sum(r.alarms_between(30.0, math.inf) for r in adapted) <= 1
     fixed = runs(factor, factor, adaptation=False)
     assert sum(r.alarms_between(0.0, math.inf) for r in fixed) > 20
     assert median_and_worst([e for r in fixed for e in r.final_errors()])[0] > 0.05

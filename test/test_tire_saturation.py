@@ -132,15 +132,18 @@ def test_the_compiled_correction_is_the_posterior_written_out() -> None:
 
 
 def test_a_surface_change_restarts_the_measure() -> None:
-    """At a change alarm (a 40 % drop at 60 s) a's information restarts: its std jumps above 5x the one before."""
+    """At a change alarm (a 40 % drop at 60 s) a's information restarts: its std jumps above 5x the one before.
+
+    Only the first alarm after the measure started: a second one seconds later finds it restarted already.
+    """
     drop = StiffnessSchedule(times=(0.0, 60.0), front=(TRUE_CF, 0.6 * TRUE_CF), rear=(TRUE_CR, 0.6 * TRUE_CR),
                              transition=0.0)
     outputs = run_drive(sine_drive(0, duration=90.0, stiffness=drop)).outputs
     alarms = np.nonzero((outputs[:, O_CHANGE] > 0.5) & (np.arange(len(outputs)) > 0))[0]
     alarms = [k for k in alarms if outputs[k - 1, O_SATURATION_STD] > 0.0]
     assert alarms, "no alarm after the measure started"
-    for k in alarms:
-        assert outputs[k, O_SATURATION_STD] > 5.0 * outputs[k - 1, O_SATURATION_STD]
+    k = alarms[0]
+    assert outputs[k, O_SATURATION_STD] > 5.0 * outputs[k - 1, O_SATURATION_STD]
 
 
 def cramer_rao_ln_stiffness(friction_known: bool) -> float:

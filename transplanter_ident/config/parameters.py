@@ -86,8 +86,8 @@ class FilterOptions:
     noise_memory: float = 60.0  # s, time constant of that measure
     max_noise_scale: float = 100.0  # largest factor on R it may set
     change_detection: bool = True  # the surface-change CUSUM on the innovations
-    change_scale: float = 4.0  # innovation variance ratio the surface-change CUSUM tests for
-    change_threshold: float = 12.0  # CUSUM alarm level (log-likelihood ratio)
+    change_scale: float = 2.0  # innovation variance ratio the surface-change CUSUM tests for
+    change_threshold: float = 8.0  # CUSUM alarm level (log-likelihood ratio)
     change_process_noise: float = 2.0e-2  # stiffness Q density after an alarm, (ln C)^2/s
     change_hold: float = 4.0  # s the raised density lasts after an alarm
     measurement_noise_from_covariance: bool = False  # R per epoch: the messages' variances, floored by R

@@ -275,8 +275,9 @@ SCHEMA: tuple[Param, ...] = (
     _float("ekf.noise_memory", 60.0, "s", "time constant of the innovations' measure of R", 1.0, 3600.0),
     _float("ekf.max_noise_scale", 100.0, "", "largest factor on R (variance) the innovations may set", 1.0, 1.0e4),
     _bool("ekf.change_detection", True, "CUSUM test of the innovations for a stiffness change (surface)"),
-    _float("ekf.change_scale", 4.0, "", "innovation variance ratio the change test looks for", 1.01, 100.0),
-    _float("ekf.change_threshold", 12.0, "", "CUSUM alarm level (log-likelihood ratio)", 1.0, 1000.0),
+    _float("ekf.change_scale", 2.0, "", "innovation variance ratio the change test looks for (4 before: with GNSS "
+           "noise 2x the default and R set to it, a 40 % drop went unseen)", 1.01, 100.0),
+    _float("ekf.change_threshold", 8.0, "", "CUSUM alarm level (log-likelihood ratio; 12 before)", 1.0, 1000.0),
     _float("ekf.change_process_noise", 2.0e-2, "(ln C)^2/s", "stiffness Q density (relative) for change_hold "
            "after a change alarm", 1.0e-8, 10.0),
     _float("ekf.change_hold", 4.0, "s", "how long the raised stiffness Q lasts after a change alarm", 0.01, 600.0),
