@@ -90,11 +90,15 @@ def noisy_runs(offset_deg: float, relinearized: bool) -> tuple[Run, ...]:
 
 @pytest.mark.parametrize("offset_deg", [0.0, 1.0])
 def test_gentle_steering_converges_at_once_without_noise(offset_deg: float) -> None:
-    """Noise-free +-5 deg: one pass is still -11 % (0 deg) / -31 % (1 deg) off at 30 s; re-linearised < 1 %."""
+    """Noise-free +-5 deg: one pass is still 10.7 % (0 deg) / 6.6 % (1 deg) off at 30 s; re-linearised < 1 %.
+
+    (-11 % and -31 % with the change test of before, ekf.change_scale 4: now its alarms at the start
+    raise the stiffness random walk, which speeds one pass up.)
+    """
     result = simulate(gentle(0, offset_deg, NOISE_FREE))
     one = run_drive(result, EstimatorConfig(options=ONE_PASS))
     relinearized = run_drive(result, RELINEARIZED)
-    assert error_at(one, 30.0) > 0.08, "the one-pass filter converged: this drive no longer shows the effect"
+    assert error_at(one, 30.0) > 0.05, "the one-pass filter converged: this drive no longer shows the effect"
     for t in (30.0, 60.0, 120.0):
         assert error_at(relinearized, t) < 0.01, f"{error_at(relinearized, t):.3%} off at {t} s"
 
@@ -277,16 +281,19 @@ def test_a_straight_start_leaves_the_estimate_where_the_data_put_it() -> None:
 
     The first seconds of a straight start carry next to nothing, yet P0's std of 2 in ln C let them
     throw Cf from the truth to a 14th of it; every new pass, from P0 again, went the same way, and
-    the U-turn left seed 9 at -41 % with a std of 4.9 % (the ML: -3 %). A new pass's prior of ln C is
-    now at most PRIOR_SIGMAS of its std wide. |EKF - ML| / std after the turn (measured: mean 0.18 /
-    0.16, worst 1.0 / 0.9; with an unbounded prior 0.73 / 0.61 and 7.8 / 3.9 over seeds 0-19):
-    every seed <= 1.5, mean <= 0.35. The ML: Nelder-Mead over the fixed-stiffness filter's NLL.
+    (with the change test of before, ekf.change_scale 4) the U-turn left seed 9 at -41 % with a std
+    of 4.9 % (the ML: -3 %). A new pass's prior of ln C is now at most PRIOR_SIGMAS of its std wide.
+    |EKF - ML| / std after the turn, measured: mean 0.18 / 0.16, worst 1.0 / 0.9; with an unbounded
+    prior 0.51 / 0.53 and 1.05 / 1.55 (the change test of before: 0.73 / 0.61 and 7.8 / 3.9 over
+    seeds 0-19). Asserted: every seed <= 1.5, mean <= 0.35. The ML: Nelder-Mead over the
+    fixed-stiffness filter's NLL.
     """
     distances = np.array([distance_to_maximum_likelihood(seed) for seed in range(12)])
     assert np.max(distances) <= 1.5 and np.all(np.mean(distances, axis=0) <= 0.35), distances
 
 
 def test_with_an_unbounded_prior_a_new_pass_falls_as_the_first(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The failure the bound fixes, so the test above can fail: seed 9 ends > 3 std from the ML (measured 7.8)."""
+    """The failure the bound fixes, so the test above can fail: the mean over seeds 0-11 > 0.35 (measured 0.51 / 0.53)."""
     monkeypatch.setattr(relinearization, "PRIOR_SIGMAS", math.inf)
-    assert np.max(distance_to_maximum_likelihood(9)) > 3.0
+    distances = np.array([distance_to_maximum_likelihood(seed) for seed in range(12)])
+    assert np.any(np.mean(distances, axis=0) > 0.35), distances

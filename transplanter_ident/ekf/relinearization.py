@@ -15,7 +15,7 @@ parameter states (θf, θr, b) held now, over the epochs since the start, the pr
 wider than :data:`PRIOR_SIGMAS` of their std now (a trust region: with P0's std of 2 in ln C, the
 first seconds of a drive that starts straight threw Cf from the truth to a 14th of it in 2 s, and a
 new pass from anywhere went the same way; field work, 52 s: Cf 41 % low at 8 std, the maximum
-likelihood 3 % low). It replaces the pass in
+likelihood 3 % low, with ekf.change_scale 4). It replaces the pass in
 force only if its innovations make those epochs more likely (the mean Gaussian NLL of the
 innovations, the tuner's objective, :func:`epoch_nll`): a Gauss-Newton step of the
 whole start-up, as an iterated EKF takes for one update, kept only when it is a step downhill.
