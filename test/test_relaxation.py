@@ -166,9 +166,9 @@ def test_relaxing_drives_at_changing_speed_stay_right() -> None:
 
     The lag d = alpha - F / C is carried to each interval's speed (alpha holds 1 / vx, the force does
     not jump): without that, the speed-ups after the turns threw the estimate (final error median 138 %,
-    worst 199 %, seeds 0-5). Required over seeds 0-3: final |error| median <= 6 % (measured 4.2 %; 2.4 %
-    over seeds 0-5) and worst <= 12 % (9.8 %); unset, seeds 0-5 end at 6.0 / 14.5 %. Never valid
-    either way (field work's headland bias, README).
+    worst 199 %, seeds 0-5). Required over seeds 0-3: final |error| median <= 6 % (measured 4.4 %; 2.5 %
+    over seeds 0-5) and worst <= 12 % (9.9 %); unset, seeds 0-5 end at 6.0 / 14.9 % (measured with the
+    re-linearised passes' bounded prior and ekf.change_scale 2; 4.2 / 9.8 and 6.0 / 14.5 before).
     """
     finals = []
     for seed in range(4):
