@@ -25,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 
-from drives import run_drive, sine_drive  # noqa: E402
+from drives import LATE_DROP, NOISY_GNSS, NOISY_GNSS_R, run_drive, sine_drive  # noqa: E402
 from independent_sim import independent_drive  # noqa: E402
 from test_validity import epochs_of  # noqa: E402
 
@@ -49,7 +49,6 @@ DEG = math.radians
 NOISE = SensorNoise()
 FIELD_STEERING, FIELD_SPEED = field_work()  # rows at 2 m/s, +-2 deg; U-turns at 1.2 m/s, 30 deg
 SLOW_FIELD_STEERING, SLOW_FIELD_SPEED = field_work(row_speed=1.2, turn_speed=0.7)
-DROP = StiffnessSchedule(times=(0.0, 75.0), front=(8000.0, 4800.0), rear=(10000.0, 6000.0))  # a wet patch
 ROWS: dict[str, dict[str, object]] = {
     "clean": {},
     "1 m/s": {"speed": 1.0},
@@ -119,12 +118,9 @@ ROWS: dict[str, dict[str, object]] = {
                                      "tire": "saturating", "friction": 0.4},
     "field work, rows at 1.2 m/s": {"duration": 300.0, "steering": SLOW_FIELD_STEERING,
                                     "speed_profile": SLOW_FIELD_SPEED},
-    "stiffness drop -40 % at 75 s, 150 s": {"duration": 150.0, "stiffness": DROP},
-    "stiffness drop -40 %, GNSS noise 2x, R set to it": {
-        "duration": 150.0, "stiffness": DROP,
-        "noise": replace(NOISE, velocity=2.0 * NOISE.velocity, heading=2.0 * NOISE.heading),
-        "filter_noise": replace(NoiseParams(), measurement_noise=tuple(4.0 * r for r in
-                                                                       NoiseParams().measurement_noise))},
+    "stiffness drop -40 % at 75 s, 150 s": {"duration": 150.0, "stiffness": LATE_DROP},
+    "stiffness drop -40 %, GNSS noise 2x, R set to it": {"duration": 150.0, "stiffness": LATE_DROP,
+                                                         "noise": NOISY_GNSS, "filter_noise": NOISY_GNSS_R},
     "stiffness drifting -40 % over 4 min": {"duration": 240.0, "stiffness": StiffnessSchedule(
         times=(0.0, 240.0), front=(8000.0, 4800.0), rear=(10000.0, 6000.0), transition=240.0)},
 }

@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from helpers import epochs_from_result, sim_samples
 
-from transplanter_ident.config.parameters import EstimatorConfig, ValiditySettings, VehicleParams
+from transplanter_ident.config.parameters import EstimatorConfig, NoiseParams, ValiditySettings, VehicleParams
 from transplanter_ident.ekf.joint_ekf import run_sequence
 from transplanter_ident.ekf.layout import (
     O_CF,
@@ -34,6 +34,11 @@ from transplanter_ident.sim.signals import StiffnessSchedule, multisine_steering
 from transplanter_ident.sim.simulator import SensorNoise, SimConfig, SimResult, simulate
 
 TRUE_CF, TRUE_CR = 8000.0, 10000.0
+#: a 40 % drop of both stiffnesses at 75 s (a wet patch; 150 s drives)
+LATE_DROP = StiffnessSchedule(times=(0.0, 75.0), front=(TRUE_CF, 0.6 * TRUE_CF), rear=(TRUE_CR, 0.6 * TRUE_CR))
+#: GNSS velocity and heading 2x noisier than the default, and the R that describes them (a tuned noisier receiver)
+NOISY_GNSS = SensorNoise(velocity=2.0 * SensorNoise().velocity, heading=2.0 * SensorNoise().heading)
+NOISY_GNSS_R = NoiseParams(measurement_noise=tuple(4.0 * r for r in NoiseParams().measurement_noise))
 
 
 def sine_drive(seed: int, **overrides: object) -> SimConfig:

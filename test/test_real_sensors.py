@@ -15,14 +15,24 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from drives import TRUE_CF, TRUE_CR, median_and_worst, pooled_coverage, run_drive, sine_drive
+from drives import (
+    LATE_DROP,
+    NOISY_GNSS,
+    NOISY_GNSS_R,
+    TRUE_CF,
+    TRUE_CR,
+    median_and_worst,
+    pooled_coverage,
+    run_drive,
+    sine_drive,
+)
 from test_validity import epochs_of
 
-from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams, ValiditySettings
+from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, ValiditySettings
 from transplanter_ident.ekf.layout import O_CF_STD
 from transplanter_ident.evaluation.validity import decide_sequence
 from transplanter_ident.sim.signals import StiffnessSchedule, step_steering
-from transplanter_ident.sim.simulator import SensorNoise, simulate
+from transplanter_ident.sim.simulator import simulate
 
 SEEDS = range(10)
 PAPER_STEP = {"speed": 1.0, "steering": step_steering(math.radians(20.0), start=2.0, ramp=0.5), "duration": 90.0}
@@ -96,21 +106,16 @@ def test_a_40_percent_stiffness_drop_is_tracked_fast_and_honestly() -> None:
     assert front >= 0.90 and rear >= 0.90, (front, rear)
 
 
-NOISY = SensorNoise(velocity=2.0 * SensorNoise().velocity, heading=2.0 * SensorNoise().heading)
-NOISY_R = replace(NoiseParams(), measurement_noise=tuple(4.0 * r for r in NoiseParams().measurement_noise))
-LATE_DROP = StiffnessSchedule(times=(0.0, 75.0), front=(TRUE_CF, 0.6 * TRUE_CF), rear=(TRUE_CR, 0.6 * TRUE_CR))
-
-
 def noisy_drop_figures(options: FilterOptions) -> tuple[float, float, float]:
     """A drop at 75 s of 150 s, GNSS noise 2x and R set to it, seeds 0-9 (the robustness sweep's row).
 
     Returns the valid share from 30 s on, the share of those (pooled) missing Cf or Cr at +-2 sigma,
     and the worst final |error|.
     """
-    config = EstimatorConfig(options=options, noise=NOISY_R)
+    config = EstimatorConfig(options=options, noise=NOISY_GNSS_R)
     valid_after, missed, finals = [], [], []
     for seed in range(10):
-        result = simulate(sine_drive(seed, duration=150.0, stiffness=LATE_DROP, noise=NOISY))
+        result = simulate(sine_drive(seed, duration=150.0, stiffness=LATE_DROP, noise=NOISY_GNSS))
         run = run_drive(result, config)
         valid = decide_sequence(config, ValiditySettings(), epochs_of(result), run.outputs)
         front, rear = run.covered()
