@@ -19,6 +19,7 @@ from transplanter_ident.ekf.joint_ekf import (
     sequence_objective,
 )
 from transplanter_ident.ekf.layout import (
+    M_SPEED_CROSS,
     N_MEMO,
     N_MODEL,
     N_OUTPUTS,
@@ -291,10 +292,13 @@ def test_repeatedly_gated_measurement_reinitialises_the_motion_and_never_moves_t
 
 @pytest.mark.parametrize("name", list(CONFIGS))
 def test_update_is_the_textbook_kalman_update(sequence, name):
-    """One step = P- = F P F^T + Q dt + g var g^T; K = P- H^T S^-1; x+ = x- + K (z - H x-); P+ = (I - K H) P- (rel 1e-9).
+    """One step = P- = F P F^T + Q dt + speed terms; K = P- H^T S^-1; x+ = x- + K (z - H x-); P+ = (I - K H) P- (rel 1e-9).
 
     F and x- come from ekf.predict (tested against finite differences in test_model.py); the rest is
-    numpy. This checks eq. (12) and the Joseph form (including its K R K^T term) in the kernel.
+    numpy. This checks eq. (12) and the Joseph form (including its K R K^T term) in the kernel. The
+    speed terms: the interval's speed error e = (n_prev + n) / 2 of two GNSS samples of variance var,
+    P- += g (var / 2) g^T + (F c g^T + g c^T F^T) / 2 with c = Cov(state error, n_prev) the filter
+    kept from the previous step; after the step it keeps c = (I - K H) g var / 2.
     """
     config = CONFIGS[name]
     arrays = FilterArrays.from_config(config)
@@ -312,10 +316,11 @@ def test_update_is_the_textbook_kalman_update(sequence, name):
     jac = ws[W_F, :n, :n].copy()
     dt = epoch.t - epochs[INJECT - 1].t
     p_pred = jac @ p @ jac.T + np.diag(arrays.process_noise) * dt  # Q is a density
-    if config.options.speed_noise:  # the speed input's noise: g var g^T, var = R_v / 2 (a two-sample mean)
-        gain_v = np.zeros(n)
+    gain_v, variance = np.zeros(n), arrays.measurement_noise[0] * factors[0]  # one speed sample's: R_v
+    if config.options.speed_noise:
         gain_v[: n - 3] = ws[W_VEC, V_SPEED_GAIN, : n - 3]
-        p_pred += 0.5 * arrays.measurement_noise[0] * factors[0] * np.outer(gain_v, gain_v)
+        cross = jac @ ekf._memo[M_SPEED_CROSS:M_SPEED_CROSS + n]  # the filter's memory: no public view
+        p_pred += 0.5 * variance * np.outer(gain_v, gain_v) + 0.5 * (np.outer(cross, gain_v) + np.outer(gain_v, cross))
     h = np.zeros((2, n))
     h[0, 0] = 1.0
     h[0, 1] = config.vehicle.antenna_x  # the lever arm: z_vy = vy + antenna_x r
@@ -340,6 +345,9 @@ def test_update_is_the_textbook_kalman_update(sequence, name):
     scale = np.sqrt(np.outer(np.diag(p_new), np.diag(p_new)))
     scale = np.where(scale > 0.0, scale, 1.0)  # a fixed steering offset has no variance
     np.testing.assert_allclose(ekf.covariance / scale, p_new / scale, rtol=0.0, atol=1e-9)
+    kept = (np.eye(n) - gain @ h) @ gain_v * 0.5 * variance
+    np.testing.assert_allclose(ekf._memo[M_SPEED_CROSS:M_SPEED_CROSS + n], kept, rtol=1e-9, atol=1e-15)
+    assert np.any(kept != 0.0) == config.options.speed_noise
 
 
 # --------------------------------------------------------------------------- covariance

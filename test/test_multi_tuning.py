@@ -395,15 +395,11 @@ def test_q_tuned_on_other_drives_within_its_span_keeps_a_held_out_change_drive_a
     +0.09 and +0.40 within the span; asserted: >= 1.5, beyond the span's 1), and the held-out
     stiffness-drop drive ended 11 and 1.7 points further off than with the defaults (seeds 21, 22;
     with the speed's noise in Q, ekf.speed_noise: 0.06 and 1.7 points; with the linear range a
-    force: 0.17 and 1.3). Within the default span (1 decade): at most 0.5 points (Cf and Cr; 0.08
-    and 0.52 now); asserted: <= 1 point.
+    force: 0.17 and 1.3; since the directional change test sees the drop whatever q_psi, 0.1 at
+    most). Within the default span (1 decade): at most 0.5 points; asserted: <= 1 point. The span's
+    own teeth are q_psi's: asserted <= 1 decade within it, >= 1.5 over the whole box.
     """
     excess, q_psi = span_outcome(seed)
     assert excess[1.0] <= 0.01, excess
     assert q_psi[1.0] <= 1.0 + 1e-9
     assert q_psi[math.inf] >= 1.5, q_psi  # over the whole box the heading's noise runs away
-
-
-def test_q_tuned_over_the_whole_box_costs_a_held_out_drive_accuracy() -> None:
-    """The same check fails over the whole box: on one of SPAN_SEEDS at least, the held-out drive loses > 1 point."""
-    assert max(span_outcome(seed)[0][math.inf] for seed in SPAN_SEEDS) > 0.01

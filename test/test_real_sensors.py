@@ -130,19 +130,22 @@ def noisy_drop_figures(options: FilterOptions) -> tuple[float, float, float]:
 def test_a_drop_is_seen_through_noisier_sensors_whose_r_is_set() -> None:
     """A 40 % drop, GNSS noise 2x and R set to it (4x): valid >= 15 %, of which <= 5 % miss; worst final <= 6 %.
 
-    The change test looks for an innovation variance ratio of ``ekf.change_scale`` (2). With 4, the
-    drop went unseen on most seeds: the estimate followed at the stiffness random walk's pace, valid
-    and wrong. Measured: valid 31 %, 1.7 % of those missed, worst final 3.9 %; with 4 and threshold
-    12 valid 9 %, 12.6 % missed (pooled; the sweep's per-drive mean: 53 %), worst 14 %.
+    Through such sensors the drop barely raises the innovations' variance, and the estimate follows
+    it at the stiffness random walk's pace, valid and wrong, unless a test sees it. The directional
+    test (ekf/change.py: the stiffness updates keep pushing one way) sees it on every seed within
+    3-6 s. Measured: valid 28 %, none of those missed, worst final 4.1 %. The variance test alone
+    (``ekf.change_scale`` 2, threshold 8) missed it on 2 of 10 seeds, worst final 14 %, once the
+    speed's errors were taken as the two-sample means they are (ekf/update.py); with ``change_scale``
+    4 and threshold 12 on 9 of 10.
     """
     valid, missed, worst = noisy_drop_figures(FilterOptions())
     assert valid >= 0.15 and missed <= 0.05 and worst <= 0.06, (valid, missed, worst)
 
 
-def test_the_change_test_of_before_missed_the_drop_through_noisier_sensors() -> None:
-    """The teeth of the test above: with ekf.change_scale 4 and threshold 12, > 8 % missed and a final error > 10 %."""
-    _, missed, worst = noisy_drop_figures(FilterOptions(change_scale=4.0, change_threshold=12.0))
-    assert missed > 0.08 and worst > 0.10, (missed, worst)
+def test_the_variance_test_alone_missed_the_drop_through_noisier_sensors() -> None:
+    """The teeth of the test above: without the directional test (its threshold out of reach), a final error > 10 %."""
+    _, _, worst = noisy_drop_figures(FilterOptions(change_shift_threshold=1.0e9))
+    assert worst > 0.10, worst
 
 
 def test_constant_stiffness_raises_at_most_one_false_alarm_per_10_minutes() -> None:

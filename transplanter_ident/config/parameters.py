@@ -88,6 +88,8 @@ class FilterOptions:
     change_detection: bool = True  # the surface-change CUSUM on the innovations
     change_scale: float = 2.0  # innovation variance ratio the surface-change CUSUM tests for
     change_threshold: float = 8.0  # CUSUM alarm level (log-likelihood ratio)
+    change_shift: float = 1.0  # mean of the normalised stiffness updates (in their std) the directional test looks for
+    change_shift_threshold: float = 10.0  # its CUSUM alarm level (log-likelihood ratio)
     change_process_noise: float = 2.0e-2  # stiffness Q density after an alarm, (ln C)^2/s
     change_hold: float = 4.0  # s the raised density lasts after an alarm
     measurement_noise_from_covariance: bool = False  # R per epoch: the messages' variances, floored by R
@@ -131,8 +133,10 @@ class FilterOptions:
             raise ValueError(f"ekf.max_noise_scale must be >= 1, got {self.max_noise_scale!r}")
         if not (math.isfinite(self.change_scale) and self.change_scale > 1.0):
             raise ValueError(f"ekf.change_scale must be > 1, got {self.change_scale!r}")
-        if not (math.isfinite(self.change_threshold) and self.change_threshold > 0.0):
-            raise ValueError(f"ekf.change_threshold must be > 0, got {self.change_threshold!r}")
+        for name in ("change_threshold", "change_shift", "change_shift_threshold"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"ekf.{name} must be > 0, got {value!r}")
 
     @property
     def noise_rate_scale(self) -> float:

@@ -4,8 +4,7 @@
   eq. 3, against what a tire at ``min_friction`` could give), the slip angles themselves or the
   lateral acceleration have left the range where the linear tire of eq. 2 holds; the step then
   updates only the motion;
-* :func:`detect_change`: a CUSUM test on the normalised innovation squared for a change of the
-  innovation variance (a new surface); an alarm raises the stiffness random walk for a while;
+* the change tests (a new surface) are in :mod:`.change`;
 * :func:`propagate_tire_bias`: the bias the linear tire takes if the surface is as slippery as
   ``ekf.min_friction`` (first order, through the filter's own F and K); the reported stiffness
   standard deviations include it; :func:`propagate_delay_bias`: likewise per second of GNSS delay
@@ -27,9 +26,7 @@ import math
 from transplanter_ident.ekf.layout import (
     G_K0,
     G_K1,
-    M_ADAPT_UNTIL,
     M_BIAS,
-    M_CUSUM,
     M_DELAY_BIAS,
     M_DELAY_INFORMATION,
     M_DELAY_SCORE,
@@ -41,15 +38,9 @@ from transplanter_ident.ekf.layout import (
     M_SATURATION_INFORMATION,
     M_SATURATION_SCORE,
     M_SCALE_BIAS,
-    O_CHANGE,
-    O_CUSUM,
     O_LAT_ACC,
     O_SLIP_F,
     O_SLIP_R,
-    S_CHANGE_HOLD,
-    S_CUSUM_CAP,
-    S_CUSUM_SCALE,
-    S_CUSUM_THRESHOLD,
     S_DELAY_MEMORY,
     S_DELAY_UNCERTAINTY,
     S_LINEAR_RANGE,
@@ -103,28 +94,6 @@ def beyond_linear_range(vehicle, settings, speed, steering, offset, vy, yaw_rate
     most = settings[S_MAX_UTILISATION]
     return most > 0.0 and max(friction_utilisation(settings, vehicle, slip_f, cf, True),
                               friction_utilisation(settings, vehicle, slip_r, cr, False)) > most
-
-
-@inline_kernel
-def detect_change(memo, settings, t, nis, out):
-    """CUSUM of the log-likelihood ratio of a variance scale s of the innovations (chi^2_2 NIS).
-
-    l = -ln s + NIS (1 - 1/s) / 2, capped; an alarm at g > threshold (a surface change) opens a
-    window of ``change_hold`` s in which the stiffness random walk runs at the raised density
-    ``change_process_noise``, so the estimate moves to the new surface over several epochs
-    instead of one large, badly linearised step; the sum restarts.
-    """
-    scale = settings[S_CUSUM_SCALE]
-    llr = min(-math.log(scale) + 0.5 * nis * (1.0 - 1.0 / scale), settings[S_CUSUM_CAP])
-    g = max(0.0, memo[M_CUSUM] + llr)
-    if g > settings[S_CUSUM_THRESHOLD]:  # a new surface: the tire's saturation is measured anew
-        memo[M_ADAPT_UNTIL] = t + settings[S_CHANGE_HOLD]
-        memo[M_SATURATION_SCORE] = 0.0
-        memo[M_SATURATION_INFORMATION] = 0.0
-        out[O_CHANGE] = 1.0
-        g = 0.0
-    memo[M_CUSUM] = g
-    out[O_CUSUM] = g
 
 
 #: relative 1-sigma of a stiffness below which it counts as known (the linear-range check applies)

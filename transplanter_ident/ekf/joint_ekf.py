@@ -73,6 +73,8 @@ from transplanter_ident.ekf.layout import (
     S_SATURATION_MEMORY,
     S_SATURATION_PRIOR,
     S_SCALE_UNCERTAINTY,
+    S_SHIFT,
+    S_SHIFT_THRESHOLD,
     S_SPEED_NOISE,
     X_OFFSET,
     X_PSI,
@@ -134,6 +136,8 @@ class FilterArrays:
         settings[S_CUSUM_THRESHOLD] = options.change_threshold
         settings[S_CUSUM_CAP] = 0.5 * options.change_threshold  # one outlier alone never raises an alarm
         settings[S_CHANGE_Q] = options.change_process_noise
+        settings[S_SHIFT] = options.change_shift
+        settings[S_SHIFT_THRESHOLD] = options.change_shift_threshold
         settings[S_CHANGE_HOLD] = options.change_hold
         settings[S_LINEAR_RANGE] = 1.0 if options.linear_range_check else 0.0
         settings[S_CHANGE_DETECTION] = 1.0 if options.change_detection else 0.0

@@ -35,7 +35,6 @@ import math
 
 from transplanter_ident.ekf.adaptation import (
     beyond_linear_range,
-    detect_change,
     forget_motion_bias,
     held_bias_variance,
     known_to,
@@ -48,6 +47,7 @@ from transplanter_ident.ekf.adaptation import (
     score_model_errors,
     signature_estimate,
 )
+from transplanter_ident.ekf.change import detect_change, normalised_update
 from transplanter_ident.ekf.layout import (
     HEADING_STATES,
     M_ADAPT_UNTIL,
@@ -68,6 +68,7 @@ from transplanter_ident.ekf.layout import (
     M_SATURATION_INFORMATION,
     M_SATURATION_SCORE,
     M_SCALE_BIAS,
+    M_SPEED_CROSS,
     M_T_PREV,
     N_LAG,
     N_MODEL,
@@ -154,7 +155,7 @@ def make_kernels(heading, lagged=False):
     nd = (N_MOTION_HEADING if heading else N_MOTION_YAW_RATE) + lag  # motion states and slip lags
     nf, nr, nb = nd, nd + 1, nd + 2  # theta_f, theta_r, steering offset
     h1 = X_PSI if heading else X_R  # second measured state
-    propagate_covariance, add_speed_noise, joseph_update = make_update(n, nd, h1)
+    propagate_covariance, add_speed_noise, joseph_update, keep_speed_cross = make_update(n, nd, h1)
 
     reset_motion, stiffness, predict_n, carry_lags, add_lag_noise = make_prediction(heading, lagged)
 
@@ -189,6 +190,8 @@ def make_kernels(heading, lagged=False):
     def restart_motion(x, p, model, memo, settings, status, t, vy_antenna, psi, yaw_rate, out):
         reset_motion(x, p, model, settings, vy_antenna, psi, yaw_rate)
         forget_motion_bias(memo, nd)
+        for i in range(n):  # the motion states now come from z, not from the speed
+            memo[M_SPEED_CROSS + i] = 0.0
         memo[M_T_PREV] = t
         memo[M_INITIALISED] = 1.0
         memo[M_GATED] = 0.0
@@ -280,8 +283,10 @@ def make_kernels(heading, lagged=False):
         propagate_covariance(p, q, dt, adapting, settings, (scale_f, scale_r), ws)
         if relaxation > 0.0:
             add_lag_noise(p, q, dt, speed, vehicle)
+        speed_variance = 0.0  # of one GNSS speed sample: R's velocity entry as the innovations show it
         if settings[S_SPEED_NOISE] > 0.5:  # the interval's speed: the mean of two GNSS samples
-            add_speed_noise(p, 0.5 * r_noise[Z_VY] * noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY), ws)
+            speed_variance = r_noise[Z_VY] * noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY)
+            add_speed_noise(p, speed_variance, memo, ws)
 
         # 4.
         antenna_x = settings[S_ANTENNA_X]
@@ -315,9 +320,12 @@ def make_kernels(heading, lagged=False):
             updated = True
             if nonlinear:
                 status = StepStatus.NONLINEAR
+            theta_f, theta_r, prior_f, prior_r = x[nf], x[nr], p[nf, nf], p[nr, nr]
             joseph_update(x, p, e0, e1, s00, s01, s11, det, antenna_x, nonlinear, ws)
             if not nonlinear and settings[S_CHANGE_DETECTION] > 0.5:  # gated outliers never raise an alarm
-                detect_change(memo, settings, t, nis, out)
+                u_f = normalised_update(theta_f, x[nf], prior_f, p[nf, nf])
+                u_r = normalised_update(theta_r, x[nr], prior_r, p[nr, nr])
+                detect_change(memo, settings, t, nis, u_f, u_r, out)
         low, high = settings[S_LOW], settings[S_HIGH]
         x[nf], x[nr] = min(max(x[nf], low), high), min(max(x[nr], low), high)
 
@@ -331,6 +339,7 @@ def make_kernels(heading, lagged=False):
                                            out[O_SLIP_R], cf_now, cr_now, log_state, ws)
         g0, g1 = propagate_delay_bias(memo, n, nd, h1, antenna_x, updated, steering_rate, ws)
         propagate_scale_bias(memo, settings, n, nd, h1, antenna_x, updated, steering, ws)
+        keep_speed_cross(memo, speed_variance, antenna_x, updated, ws)
         if updated:
             learn_noise_scales(memo, settings, dt, e0, e1, s00 - r0, s11 - r1, r0, r1, r_noise[Z_VY],
                                r_noise[Z_SECOND])

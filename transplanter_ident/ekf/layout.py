@@ -47,9 +47,10 @@ S_DELAY_UNCERTAINTY = 31  # s, 1-sigma of the GNSS delay left out of gnss.delay 
 S_DELAY_MEMORY = 32  # s, time constant of the delay's adaptation.score_signature (ekf.identifiability_memory)
 S_SATURATION_PRIOR, S_SATURATION_MEMORY = 33, 34  # adaptation.saturation_share, and its measure's memory (s)
 S_SCALE_UNCERTAINTY = 35  # relative 1-sigma of the steering sensor's gain left out of vehicle.steering_scale
-S_SPEED_NOISE = 36  # 1: the speed input's noise (half R's velocity variance) enters Q through dx/dvx
+S_SPEED_NOISE = 36  # 1: the speed input's noise (R's velocity variance per sample) enters P through dx/dvx
 S_MAX_UTILISATION = 37  # the linear range's force limit, a fraction of mu Fz at min_friction (adaptation.py)
-N_SETTINGS = 38
+S_SHIFT, S_SHIFT_THRESHOLD = 38, 39  # the directional change test's shift (in std) and alarm level (adaptation.py)
+N_SETTINGS = 40
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6
@@ -80,7 +81,13 @@ M_SCALE_BIAS = 31  # memo[M_SCALE_BIAS + i]: the bias of state i per unit (relat
 # 1 once both stiffnesses were known (adaptation.known_to): the slip lags are modelled from then on (kernels.py)
 M_LAG_ACTIVE = M_SCALE_BIAS + MAX_STATES  # each bias block holds MAX_STATES slots
 M_LAG_SPEED = M_LAG_ACTIVE + 1  # m/s, the speed the slip lags were last predicted at (0: none since a reset)
-N_MEMO = M_LAG_SPEED + 1
+#: memo[M_SPEED_CROSS + i]: Cov(error of state i, error of the last GNSS speed sample), which the next
+#: interval's speed shares (update.add_speed_noise)
+M_SPEED_CROSS = M_LAG_SPEED + 1
+#: the directional change test's CUSUMs (adaptation.detect_change): Cf up, Cf down, Cr up, Cr down
+M_SHIFT = M_SPEED_CROSS + MAX_STATES
+N_SHIFT = 4
+N_MEMO = M_SHIFT + N_SHIFT
 
 # the open-loop model's state: the filter's motion states and slip lags, [vy, r, psi, d_f, d_r] or [vy, r, d_f, d_r]
 N_MODEL = N_MOTION_HEADING + N_LAG
@@ -120,6 +127,7 @@ WORK_SIZE = MAX_STATES
 # rows of ws[W_VEC]
 V_BACKUP_X, V_BACKUP_MODEL, V_NEW_X, V_NEW_MODEL, V_BIAS = 0, 1, 2, 3, 4
 V_SPEED_GAIN = 5  # d x_{k+1} / d vx over the interval (the speed input's noise in Q)
+V_SPEED_CROSS = 6  # F times memo[M_SPEED_CROSS:] (update.add_speed_noise)
 # rows of ws[W_GAIN]
 G_K0, G_K1, G_HP0, G_HP1 = 0, 1, 2, 3
 

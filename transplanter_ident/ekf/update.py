@@ -2,7 +2,10 @@
 
 :func:`make_update` compiles both for one state size (n states, nd motion states, the second
 measured state h1) so that their loops unroll. F's parameter rows are [0, I] (random walks).
-The speed is an input measured with noise: its variance enters Q as g var g^T, g = dx_{k+1}/dvx.
+The speed is an input measured with noise: the mean of an interval's two GNSS samples. Its variance
+enters P through g = dx_{k+1}/dvx, and so does its first sample's, which the previous interval
+used too: without that covariance the filter took the speed's errors as white, and a heading
+that integrates many intervals as better known than it is (overconfident at low speed).
 """
 
 from __future__ import annotations
@@ -12,7 +15,9 @@ from transplanter_ident.ekf.layout import (
     G_HP1,
     G_K0,
     G_K1,
+    M_SPEED_CROSS,
     S_CHANGE_Q,
+    V_SPEED_CROSS,
     V_SPEED_GAIN,
     W_F,
     W_GAIN,
@@ -25,7 +30,10 @@ from transplanter_ident.jit import inline_kernel
 
 
 def make_update(n, nd, h1):  # noqa: ANN001, ANN201
-    """(propagate_covariance, add_speed_noise, joseph_update) for n states, nd of them motion, measuring states 0 and h1."""
+    """The covariance kernels for n states, nd of them motion, measuring states 0 and h1.
+
+    Returns (propagate_covariance, add_speed_noise, joseph_update, keep_speed_cross).
+    """
     nf, nr = nd, nd + 1
 
     @inline_kernel
@@ -58,11 +66,42 @@ def make_update(n, nd, h1):  # noqa: ANN001, ANN201
             p[i, i] += density * dt
 
     @inline_kernel
-    def add_speed_noise(p, speed_variance, ws):
-        """P += g var g^T over the motion states, g = dx_{k+1}/dvx (ws[W_VEC, V_SPEED_GAIN], from predict)."""
-        for i in range(nd):
-            for j in range(nd):
-                p[i, j] += speed_variance * ws[W_VEC, V_SPEED_GAIN, i] * ws[W_VEC, V_SPEED_GAIN, j]
+    def add_speed_noise(p, sample_variance, memo, ws):
+        """P += (var / 2) g g^T + (u g^T + g u^T) / 2 for the interval's speed error e = (n_prev + n) / 2.
+
+        var: one GNSS speed sample's variance; g = dx_{k+1}/dvx (ws[W_VEC, V_SPEED_GAIN], from predict,
+        zero beyond the motion states); c = memo[M_SPEED_CROSS:] = Cov(state error, n_prev) from the
+        previous step (:func:`keep_speed_cross`), so Cov(F state error, e) = u / 2 with u = F c.
+        """
+        for i in range(n):
+            acc = memo[M_SPEED_CROSS + i]  # the parameter rows of F are [0, I]
+            if i < nd:
+                acc = 0.0
+                for j in range(n):
+                    acc += ws[W_F, i, j] * memo[M_SPEED_CROSS + j]
+            ws[W_VEC, V_SPEED_CROSS, i] = acc
+        for i in range(n):
+            g_i = ws[W_VEC, V_SPEED_GAIN, i] if i < nd else 0.0
+            u_i = ws[W_VEC, V_SPEED_CROSS, i]
+            for j in range(n):
+                g_j = ws[W_VEC, V_SPEED_GAIN, j] if j < nd else 0.0
+                p[i, j] += 0.5 * (sample_variance * g_i * g_j + u_i * g_j + g_i * ws[W_VEC, V_SPEED_CROSS, j])
+
+    @inline_kernel
+    def keep_speed_cross(memo, sample_variance, antenna_x, updated, ws):
+        """memo[M_SPEED_CROSS:] = Cov(state error, n) = (I - K H) g var / 2 after the step (n: the last sample's error).
+
+        Before the update the state's error holds g e, and Cov(e, n) = var / 2; an update (gain K in
+        ws[W_GAIN], zero rows where the step held them) takes it to (I - K H) times that.
+        """
+        half = 0.5 * sample_variance
+        hc0 = half * (ws[W_VEC, V_SPEED_GAIN, X_VY] + antenna_x * ws[W_VEC, V_SPEED_GAIN, X_R])
+        hc1 = half * ws[W_VEC, V_SPEED_GAIN, h1]
+        for i in range(n):
+            c = half * ws[W_VEC, V_SPEED_GAIN, i] if i < nd else 0.0
+            if updated:
+                c -= ws[W_GAIN, G_K0, i] * hc0 + ws[W_GAIN, G_K1, i] * hc1
+            memo[M_SPEED_CROSS + i] = c
 
     @inline_kernel
     def joseph_update(x, p, e0, e1, s00, s01, s11, det, antenna_x, motion_only, ws):
@@ -95,4 +134,4 @@ def make_update(n, nd, h1):  # noqa: ANN001, ANN201
                 p[i, j] = acc
                 p[j, i] = acc
 
-    return propagate_covariance, add_speed_noise, joseph_update
+    return propagate_covariance, add_speed_noise, joseph_update, keep_speed_cross

@@ -1,0 +1,81 @@
+"""Beyond the paper: two CUSUM tests for a stiffness change (a new surface; DESIGN.md section 7).
+
+* the variance test: the log-likelihood ratio of the innovations' covariance scaled by
+  ``ekf.change_scale`` against as modelled, from the NIS (chi^2 with 2 degrees of freedom),
+  l = -ln s + NIS (1 - 1/s) / 2;
+* the directional test: each stiffness update normalised by its own std,
+  u = d theta / sqrt(P^-_thth - P^+_thth), is N(0, 1) while the model holds (the update K e has
+  covariance K S K^T = P^- - P^+). On a new surface the updates keep pushing one way. Two one-sided
+  CUSUMs per stiffness test a mean shift of +-``ekf.change_shift`` (delta): l = delta (|u| - delta / 2)
+  in the shift's direction. Through sensors noisier than the default, a 40 % drop barely raises
+  the innovations' variance while the estimate follows it at the random walk's pace; its updates
+  show it within seconds.
+
+Either sum past its threshold is an alarm: for ``change_hold`` s the stiffness random walk runs at
+``change_process_noise``, so the estimate moves to the new surface over several epochs rather than
+one large, badly linearised step; the tires' saturation is measured anew and all sums restart.
+Each epoch adds at most half its test's threshold: one outlier alone never raises an alarm.
+"""
+
+from __future__ import annotations
+
+import math
+
+from transplanter_ident.ekf.layout import (
+    M_ADAPT_UNTIL,
+    M_CUSUM,
+    M_SATURATION_INFORMATION,
+    M_SATURATION_SCORE,
+    M_SHIFT,
+    N_SHIFT,
+    O_CHANGE,
+    O_CUSUM,
+    S_CHANGE_HOLD,
+    S_CUSUM_CAP,
+    S_CUSUM_SCALE,
+    S_CUSUM_THRESHOLD,
+    S_SHIFT,
+    S_SHIFT_THRESHOLD,
+)
+from transplanter_ident.jit import inline_kernel
+
+
+@inline_kernel
+def normalised_update(before, after, variance_before, variance_after):
+    """The update (after - before) / sqrt(P^- - P^+) of one stiffness state; 0 where the step did not update it."""
+    reduction = variance_before - variance_after
+    return (after - before) / math.sqrt(reduction) if reduction > 0.0 else 0.0
+
+
+@inline_kernel
+def shift_alarm(memo, settings, u_f, u_r):
+    """Add this epoch's updates to the directional CUSUMs; True if one passed ``change_shift_threshold``."""
+    delta, threshold = settings[S_SHIFT], settings[S_SHIFT_THRESHOLD]
+    alarm = False
+    for i in range(N_SHIFT):  # Cf up, Cf down, Cr up, Cr down
+        u = u_f if i < 2 else u_r
+        if i % 2 == 1:
+            u = -u
+        g = max(0.0, memo[M_SHIFT + i] + min(delta * (u - 0.5 * delta), 0.5 * threshold))
+        memo[M_SHIFT + i] = g
+        alarm = alarm or g > threshold
+    return alarm
+
+
+@inline_kernel
+def detect_change(memo, settings, t, nis, u_f, u_r, out):
+    """Both tests on one updated epoch (NIS, and the normalised updates u_f, u_r); an alarm as the module says."""
+    scale = settings[S_CUSUM_SCALE]
+    llr = min(-math.log(scale) + 0.5 * nis * (1.0 - 1.0 / scale), settings[S_CUSUM_CAP])
+    g = max(0.0, memo[M_CUSUM] + llr)
+    shifted = shift_alarm(memo, settings, u_f, u_r)
+    if g > settings[S_CUSUM_THRESHOLD] or shifted:  # a new surface: the tire's saturation is measured anew
+        memo[M_ADAPT_UNTIL] = t + settings[S_CHANGE_HOLD]
+        memo[M_SATURATION_SCORE] = 0.0
+        memo[M_SATURATION_INFORMATION] = 0.0
+        out[O_CHANGE] = 1.0
+        g = 0.0
+        for i in range(N_SHIFT):
+            memo[M_SHIFT + i] = 0.0
+    memo[M_CUSUM] = g
+    out[O_CUSUM] = g
