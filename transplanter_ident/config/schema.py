@@ -266,9 +266,10 @@ SCHEMA: tuple[Param, ...] = (
            "hold the bias it causes (~5-8 % per % at 2 m/s; /diagnostics scale_sensitivity_per_percent); 0: off",
            0.0, 0.2),
     _bool("ekf.speed_noise", True, "the speed the model is driven with is the GNSS ground speed, as noisy as the "
-          "velocity: its variance (R's velocity entry / 2, the mean of an interval's two samples, times the factor "
-          "the innovations show) enters Q through the model's sensitivity to the speed. In a tight turn a 1 % speed "
-          "error moves the yaw rate by 1 %, which a filter without it reads as a stiffness change"),
+          "velocity: the mean of an interval's two samples (each of R's velocity variance times the factor the "
+          "innovations show), the first shared with the interval before; it enters P through the model's "
+          "sensitivity to the speed. In a tight turn a 1 % speed error moves the yaw rate by 1 %, which a filter "
+          "without it reads as a stiffness change"),
     _bool("ekf.noise_adaptation", True, "raise R to what the innovations show (covariance matching over "
           "ekf.noise_memory; never below the configured or reported R), so noisier sensors neither raise change "
           "alarms nor narrow the band"),
