@@ -9,7 +9,10 @@
   CUSUMs per stiffness test a mean shift of +-``ekf.change_shift`` (delta): l = delta (|u| - delta / 2)
   in the shift's direction. Through sensors noisier than the default, a 40 % drop barely raises
   the innovations' variance while the estimate follows it at the random walk's pace; its updates
-  show it within seconds.
+  show it within seconds. GNSS errors correlated over a few epochs (a receiver's own filter) make
+  the updates so too (lag-1 correlation rho ~0.6 at 0.5 s), and sums of them grow faster than the
+  test assumes: each u is scaled by sqrt((1 - rho) / (1 + rho)), the long-run std of an AR(1) series,
+  with rho = E[u_k u_k-1] / E[u^2] measured over ``ekf.noise_memory`` (uncentred, from 0 and 1).
 
 Either sum past its threshold is an alarm: for ``change_hold`` s the stiffness random walk runs at
 ``change_process_noise``, so the estimate moves to the new surface over several epochs rather than
@@ -27,6 +30,9 @@ from transplanter_ident.ekf.layout import (
     M_SATURATION_INFORMATION,
     M_SATURATION_SCORE,
     M_SHIFT,
+    M_SHIFT_LAG,
+    M_SHIFT_LAST,
+    M_SHIFT_POWER,
     N_SHIFT,
     O_CHANGE,
     O_CUSUM,
@@ -34,6 +40,7 @@ from transplanter_ident.ekf.layout import (
     S_CUSUM_CAP,
     S_CUSUM_SCALE,
     S_CUSUM_THRESHOLD,
+    S_NOISE_MEMORY,
     S_SHIFT,
     S_SHIFT_THRESHOLD,
 )
@@ -47,13 +54,30 @@ def normalised_update(before, after, variance_before, variance_after):
     return (after - before) / math.sqrt(reduction) if reduction > 0.0 else 0.0
 
 
+#: the largest lag-1 correlation of the updates the scaling takes
+MAX_CORRELATION = 0.95
+
+
 @inline_kernel
-def shift_alarm(memo, settings, u_f, u_r):
+def decorrelated(memo, k, u, weight):
+    """The update u of stiffness k scaled to its long-run std by the updates' lag-1 correlation (moments over ``weight``)."""
+    memo[M_SHIFT_POWER + k] += weight * (u * u - 1.0 - memo[M_SHIFT_POWER + k])
+    memo[M_SHIFT_LAG + k] += weight * (u * memo[M_SHIFT_LAST + k] - memo[M_SHIFT_LAG + k])
+    memo[M_SHIFT_LAST + k] = u
+    power = 1.0 + memo[M_SHIFT_POWER + k]
+    rho = min(max(memo[M_SHIFT_LAG + k] / power, 0.0), MAX_CORRELATION) if power > 0.0 else 0.0
+    return u * math.sqrt((1.0 - rho) / (1.0 + rho))
+
+
+@inline_kernel
+def shift_alarm(memo, settings, dt, u_f, u_r):
     """Add this epoch's updates to the directional CUSUMs; True if one passed ``change_shift_threshold``."""
     delta, threshold = settings[S_SHIFT], settings[S_SHIFT_THRESHOLD]
+    weight = min(1.0, dt / settings[S_NOISE_MEMORY])
+    scaled_f, scaled_r = decorrelated(memo, 0, u_f, weight), decorrelated(memo, 1, u_r, weight)
     alarm = False
     for i in range(N_SHIFT):  # Cf up, Cf down, Cr up, Cr down
-        u = u_f if i < 2 else u_r
+        u = scaled_f if i < 2 else scaled_r
         if i % 2 == 1:
             u = -u
         g = max(0.0, memo[M_SHIFT + i] + min(delta * (u - 0.5 * delta), 0.5 * threshold))
@@ -63,12 +87,12 @@ def shift_alarm(memo, settings, u_f, u_r):
 
 
 @inline_kernel
-def detect_change(memo, settings, t, nis, u_f, u_r, out):
+def detect_change(memo, settings, t, dt, nis, u_f, u_r, out):
     """Both tests on one updated epoch (NIS, and the normalised updates u_f, u_r); an alarm as the module says."""
     scale = settings[S_CUSUM_SCALE]
     llr = min(-math.log(scale) + 0.5 * nis * (1.0 - 1.0 / scale), settings[S_CUSUM_CAP])
     g = max(0.0, memo[M_CUSUM] + llr)
-    shifted = shift_alarm(memo, settings, u_f, u_r)
+    shifted = shift_alarm(memo, settings, dt, u_f, u_r)
     if g > settings[S_CUSUM_THRESHOLD] or shifted:  # a new surface: the tire's saturation is measured anew
         memo[M_ADAPT_UNTIL] = t + settings[S_CHANGE_HOLD]
         memo[M_SATURATION_SCORE] = 0.0

@@ -325,7 +325,7 @@ def make_kernels(heading, lagged=False):
             if not nonlinear and settings[S_CHANGE_DETECTION] > 0.5:  # gated outliers never raise an alarm
                 u_f = normalised_update(theta_f, x[nf], prior_f, p[nf, nf])
                 u_r = normalised_update(theta_r, x[nr], prior_r, p[nr, nr])
-                detect_change(memo, settings, t, nis, u_f, u_r, out)
+                detect_change(memo, settings, t, dt, nis, u_f, u_r, out)
         low, high = settings[S_LOW], settings[S_HIGH]
         x[nf], x[nr] = min(max(x[nf], low), high), min(max(x[nr], low), high)
 

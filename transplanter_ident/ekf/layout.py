@@ -84,10 +84,12 @@ M_LAG_SPEED = M_LAG_ACTIVE + 1  # m/s, the speed the slip lags were last predict
 #: memo[M_SPEED_CROSS + i]: Cov(error of state i, error of the last GNSS speed sample), which the next
 #: interval's speed shares (update.add_speed_noise)
 M_SPEED_CROSS = M_LAG_SPEED + 1
-#: the directional change test's CUSUMs (adaptation.detect_change): Cf up, Cf down, Cr up, Cr down
+#: the directional change test (change.py): its CUSUMs (Cf up, Cf down, Cr up, Cr down), then per
+#: stiffness the normalised updates' mean square minus 1, their lag-1 mean product, and the last one
 M_SHIFT = M_SPEED_CROSS + MAX_STATES
 N_SHIFT = 4
-N_MEMO = M_SHIFT + N_SHIFT
+M_SHIFT_POWER, M_SHIFT_LAG, M_SHIFT_LAST = M_SHIFT + N_SHIFT, M_SHIFT + N_SHIFT + 2, M_SHIFT + N_SHIFT + 4
+N_MEMO = M_SHIFT_LAST + 2
 
 # the open-loop model's state: the filter's motion states and slip lags, [vy, r, psi, d_f, d_r] or [vy, r, d_f, d_r]
 N_MODEL = N_MOTION_HEADING + N_LAG
