@@ -90,15 +90,16 @@ def noisy_runs(offset_deg: float, relinearized: bool) -> tuple[Run, ...]:
 
 @pytest.mark.parametrize("offset_deg", [0.0, 1.0])
 def test_gentle_steering_converges_at_once_without_noise(offset_deg: float) -> None:
-    """Noise-free +-5 deg: one pass is still 10.7 % (0 deg) / 6.6 % (1 deg) off at 30 s; re-linearised < 1 %.
+    """Noise-free +-5 deg: one pass is still 10.9 % (0 deg) / 4.8 % (1 deg) off at 30 s; re-linearised < 1 %.
 
-    (-11 % and -31 % with the change test of before, ekf.change_scale 4: now its alarms at the start
-    raise the stiffness random walk, which speeds one pass up.)
+    (-11 % and -31 % with the change test of before, ekf.change_scale 4, and 6.6 % with 1 deg before
+    the directional change test: their alarms at the start raise the stiffness random walk, which
+    speeds one pass up.) Asserted: one pass > 3 % off, the premise.
     """
     result = simulate(gentle(0, offset_deg, NOISE_FREE))
     one = run_drive(result, EstimatorConfig(options=ONE_PASS))
     relinearized = run_drive(result, RELINEARIZED)
-    assert error_at(one, 30.0) > 0.05, "the one-pass filter converged: this drive no longer shows the effect"
+    assert error_at(one, 30.0) > 0.03, "the one-pass filter converged: this drive no longer shows the effect"
     for t in (30.0, 60.0, 120.0):
         assert error_at(relinearized, t) < 0.01, f"{error_at(relinearized, t):.3%} off at {t} s"
 
