@@ -19,10 +19,19 @@ from test_ekf import epoch_list
 
 from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions
 from transplanter_ident.ekf.joint_ekf import FilterArrays, JointEKF
-from transplanter_ident.ekf.layout import O_CHANGE, X_THETA_F, X_THETA_R, StepStatus
+from transplanter_ident.ekf.layout import (
+    M_CUSUM,
+    M_SHIFT,
+    N_SHIFT,
+    O_CHANGE,
+    X_THETA_F,
+    X_THETA_R,
+    StepStatus,
+)
 from transplanter_ident.sim.simulator import SensorNoise, SimConfig
 
 DROP = 75.0  # s
+ROLLBACK_AT = 390  # epochs (to 78 s), while both tests' sums grow after the drop
 SEEDS = range(10)
 
 
@@ -126,3 +135,17 @@ def test_the_variance_test_alone_sees_it_late_or_never() -> None:
         alarms = run.t[run.outputs[:, O_CHANGE] > 0.5]
         late += not np.any((alarms >= DROP) & (alarms <= DROP + 8.0))
     assert late >= 3, late
+
+
+def test_a_rolled_back_step_leaves_the_change_sums_as_they_were() -> None:
+    """A step rolled back (recovery.py; here Q of 1e300 set at run time) restores both tests' sums with the state."""
+    config = EstimatorConfig(noise=NOISY_GNSS_R)
+    epochs = epoch_list(simulate_epochs(noisy_drop(0))[1])
+    ekf = JointEKF(config)
+    for epoch in epochs[:ROLLBACK_AT]:
+        ekf.step(epoch)
+    sums = ekf._memo[[M_CUSUM, *range(M_SHIFT, M_SHIFT + N_SHIFT)]].copy()  # the filter's memory: no public view
+    assert np.count_nonzero(sums) >= 2, sums  # else nothing would show a restore
+    ekf.set_noise(replace(config.noise, process_noise=(1.0e300,) * 4))
+    assert ekf.step(epochs[ROLLBACK_AT]).status is StepStatus.DIVERGED
+    np.testing.assert_array_equal(ekf._memo[[M_CUSUM, *range(M_SHIFT, M_SHIFT + N_SHIFT)]], sums)

@@ -203,7 +203,8 @@ def ekf_step(x, p, model, memo, vehicle, settings, q, r_noise, t, speed, steerin
     p : (n, n)*         state covariance P
     model : (N_MODEL,)*  open-loop model output (paper Figs. 6-7): [vy, r, psi], or x's motion states and lags
     memo : (N_MEMO,)*   [t_prev, initialised, consecutive gated, CUSUM, adapting until, consecutive diverged,
-                        saturation bias of each state (n)], layout.M_*
+                        saturation bias of each state (n), R's measure, the delay's and gain's biases,
+                        the speed sample's covariance with each state, the directional test], layout.M_*
     vehicle : (N_VEHICLE,)  [mass, lf, lr, iz, relaxation length], model.vehicle_array
     settings : (N_SETTINGS,)  options as numbers, layout.S_*
     q : (n,)            diag Q as a spectral density (per second; each interval adds q dt)

@@ -68,12 +68,14 @@ from transplanter_ident.ekf.layout import (
     M_SATURATION_INFORMATION,
     M_SATURATION_SCORE,
     M_SCALE_BIAS,
+    M_SHIFT,
     M_SPEED_CROSS,
     M_T_PREV,
     N_LAG,
     N_MODEL,
     N_MOTION_HEADING,
     N_MOTION_YAW_RATE,
+    N_SHIFT,
     O_CF,
     O_CF_STD,
     O_CORRELATION,
@@ -113,6 +115,7 @@ from transplanter_ident.ekf.layout import (
     S_MAX_INTERVAL,
     S_MIN_SPEED,
     S_SPEED_NOISE,
+    V_BACKUP_CHANGE,
     V_BACKUP_MODEL,
     V_BACKUP_X,
     VEH_RELAXATION,
@@ -255,7 +258,9 @@ def make_kernels(heading, lagged=False):
                 ws[W_BACKUP_P, i, j] = p[i, j]
         for i in range(N_MODEL):
             ws[W_VEC, V_BACKUP_MODEL, i] = model[i]
-        cusum_before = memo[M_CUSUM]
+        ws[W_VEC, V_BACKUP_CHANGE, 0] = memo[M_CUSUM]  # rolled back with the step (recovery.py)
+        for i in range(N_SHIFT):
+            ws[W_VEC, V_BACKUP_CHANGE, 1 + i] = memo[M_SHIFT + i]
 
         # the tire's range from the last motion estimate, once both stiffnesses are known (see adaptation.py)
         log_state = settings[S_LOG] > 0.5
@@ -331,7 +336,7 @@ def make_kernels(heading, lagged=False):
 
         # 7.
         if not healthy(x, p, r_model, vy_model, nis):  # roll back; re-initialise if it lasts (recovery.py)
-            return recover(x, p, model, memo, settings, t, vy_antenna, psi, yaw_rate, cusum_before, ws, out)
+            return recover(x, p, model, memo, settings, t, vy_antenna, psi, yaw_rate, ws, out)
         memo[M_T_PREV] = t
         memo[M_DIVERGED] = 0.0
         cf_now, cr_now = stiffness(x, settings, 0)[0], stiffness(x, settings, 1)[0]

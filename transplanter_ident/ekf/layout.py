@@ -130,6 +130,7 @@ WORK_SIZE = MAX_STATES
 V_BACKUP_X, V_BACKUP_MODEL, V_NEW_X, V_NEW_MODEL, V_BIAS = 0, 1, 2, 3, 4
 V_SPEED_GAIN = 5  # d x_{k+1} / d vx over the interval (the speed input's noise in Q)
 V_SPEED_CROSS = 6  # F times memo[M_SPEED_CROSS:] (update.add_speed_noise)
+V_BACKUP_CHANGE = 7  # the change tests' sums before the step, memo[M_CUSUM] then memo[M_SHIFT:] (recovery.py)
 # rows of ws[W_GAIN]
 G_K0, G_K1, G_HP0, G_HP1 = 0, 1, 2, 3
 

@@ -23,12 +23,15 @@ import math
 from transplanter_ident.ekf.layout import (
     M_CUSUM,
     M_DIVERGED,
+    M_SHIFT,
     N_MODEL,
+    N_SHIFT,
     S_HIGH,
     S_LOW,
     S_P0_OFFSET,
     S_P0_THETA_F,
     S_P0_THETA_R,
+    V_BACKUP_CHANGE,
     V_BACKUP_MODEL,
     V_BACKUP_X,
     W_BACKUP_P,
@@ -78,7 +81,7 @@ def make_recovery(n, nd, max_variance, write_outputs, restart_motion):  # noqa: 
             x[nb] = 0.0
 
     @called_kernel
-    def recover(x, p, model, memo, settings, t, vy_antenna, psi, yaw_rate, cusum_before, ws, out):
+    def recover(x, p, model, memo, settings, t, vy_antenna, psi, yaw_rate, ws, out):
         """Roll the step back (DIVERGED), or re-initialise when the divergence lasts (RESTARTED)."""
         parameters_diverged = not bounded(x, p, nf)
         for i in range(n):
@@ -87,7 +90,9 @@ def make_recovery(n, nd, max_variance, write_outputs, restart_motion):  # noqa: 
                 p[i, j] = ws[W_BACKUP_P, i, j]
         for i in range(N_MODEL):
             model[i] = ws[W_VEC, V_BACKUP_MODEL, i]
-        memo[M_CUSUM] = cusum_before
+        memo[M_CUSUM] = ws[W_VEC, V_BACKUP_CHANGE, 0]
+        for i in range(N_SHIFT):
+            memo[M_SHIFT + i] = ws[W_VEC, V_BACKUP_CHANGE, 1 + i]
         memo[M_DIVERGED] += 1.0
         out[:] = 0.0
         if memo[M_DIVERGED] < MAX_DIVERGED and bounded(x, p, 0):
