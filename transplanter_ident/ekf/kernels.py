@@ -12,11 +12,12 @@ The body-frame vy is the GNSS velocity turned by the *measured* heading, so its 
 Beyond the paper (DESIGN.md section 7):
 
 * Q is a spectral density: each interval adds Q dt, so one parameter file fits any GNSS rate;
-* theta and b are random walks; a surface change (adaptation.py) raises the stiffness's for a while;
+* theta and b are random walks; a surface change (change.py) raises the stiffness's for a while;
 * beyond the linear tire range only the motion states are updated (a Schmidt update);
 * a measurement gated ``max_gated`` times in a row re-initialises the motion states; it never
   forces a stiffness update;
-* the speed input is the GNSS's, with its noise: Q holds it through dx/dvx (``ekf.speed_noise``);
+* the speed input is the GNSS's, with its noise: P holds it through dx/dvx, with the covariance of the
+  sample two intervals share (``ekf.speed_noise``, update.py);
 * relaxing tires (``vehicle.relaxation_length``): the slip lags of both axles follow the motion states,
   modelled once both stiffnesses are known (before, from a prior far off, their weaker response
   throws the stiffness to its bounds), and carried to each interval's speed (:mod:`.prediction`).
@@ -218,13 +219,14 @@ def make_kernels(heading, lagged=False):
         1. Reject a non-finite epoch or a stamp not after the previous one (nothing changes).
         2. Initialise, or re-initialise after a gap (or a clock step back beyond max_interval), at low
            speed or reversing (motion from z).
-        3. Predict x and the open-loop model over dt (eq. 12), P = F P F^T + Q dt (+ the speed's noise).
+        3. Predict x and the open-loop model over dt (eq. 12), P = F P F^T + Q dt (+ the speed's noise, update.py).
         4. Innovation, S and NIS with the lever arm in h(x), the heading error in vy and R as the innovations
-           show it (adaptation.noise_scale); the CUSUM test.
+           show it (adaptation.noise_scale).
         5. Gate; after max_gated gated epochs in a row, re-initialise the motion states.
-        6. Joseph update (motion only outside the linear tire range); clamp the stiffness.
+        6. Joseph update (motion only outside the linear tire range); the change tests (change.py); clamp the stiffness.
         7. Roll back if anything became non-finite; re-initialise if that lasts (:mod:`.recovery`); else
-           propagate the tire's, the delay's and the steering gain's biases, learn R, and score the delay
+           propagate the tire's, the delay's and the steering gain's biases, keep the speed sample's covariance
+           with the state (update.keep_speed_cross), learn R, and score the delay
            and the tires' saturation from the innovations (the saturation's share corrects Cf, Cr).
         """
         out[:] = 0.0
