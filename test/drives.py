@@ -49,6 +49,11 @@ def sine_drive(seed: int, **overrides: object) -> SimConfig:
     return replace(base, **overrides)
 
 
+def noisy_late_drop(seed: int) -> SimConfig:
+    """The identification drive, 150 s, with LATE_DROP seen through NOISY_GNSS (filter it with NOISY_GNSS_R)."""
+    return sine_drive(seed, duration=150.0, stiffness=LATE_DROP, noise=NOISY_GNSS)
+
+
 @dataclass(frozen=True)
 class Run:
     """One drive through the filter: per-epoch outputs and the truth at each epoch."""

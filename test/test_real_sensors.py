@@ -16,12 +16,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from drives import (
-    LATE_DROP,
-    NOISY_GNSS,
     NOISY_GNSS_R,
     TRUE_CF,
     TRUE_CR,
     median_and_worst,
+    noisy_late_drop,
     pooled_coverage,
     run_drive,
     sine_drive,
@@ -115,7 +114,7 @@ def noisy_drop_figures(options: FilterOptions) -> tuple[float, float, float]:
     config = EstimatorConfig(options=options, noise=NOISY_GNSS_R)
     valid_after, missed, finals = [], [], []
     for seed in range(10):
-        result = simulate(sine_drive(seed, duration=150.0, stiffness=LATE_DROP, noise=NOISY_GNSS))
+        result = simulate(noisy_late_drop(seed))
         run = run_drive(result, config)
         valid = decide_sequence(config, ValiditySettings(), epochs_of(result), run.outputs)
         front, rear = run.covered()
