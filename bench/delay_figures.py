@@ -1,9 +1,9 @@
 """Figures of ``tuner --estimate-delay`` (issue #13 item 4): the estimated gnss.delay on simulated drives.
 
 Not a test (test/test_tuner_delay.py asserts the 10 ms acceptance on fewer seeds). For each true
-delay (0, 40, 80, 120 ms) and each of ``--seeds`` seeds (every drive its own seed: seeds
-``i * N .. i * N + N - 1`` for the i-th delay), a scenario is simulated with its GNSS stamped that
-late and :func:`transplanter_ident.tuning.delay.search_delay` runs on the tuner's objective (NLL
+delay (0, 40, 80, 120 ms; -40, -80 ms: the steering stamped that late) and each of ``--seeds`` seeds
+(every drive its own seed: seeds ``i * N .. i * N + N - 1`` for the i-th delay), a scenario is
+simulated with its GNSS stamped that late and :func:`transplanter_ident.tuning.delay.search_delay` runs on the tuner's objective (NLL
 at the default Q/R) over the drive's samples, as ``tuner --estimate-delay`` does on one bag.
 Prints the error (estimate - truth, ms) per delay and seed, and the median and worst |error|; and
 the estimate's std (the NLL's curvature, what the tuner writes as ``ekf.delay_uncertainty``): its
@@ -31,7 +31,7 @@ from transplanter_ident.sim.scenarios import build_config  # noqa: E402
 from transplanter_ident.sim.simulator import simulate  # noqa: E402
 from transplanter_ident.tuning.delay import estimate_delay, serial_scores  # noqa: E402
 
-TRUE_DELAYS = (0.0, 0.04, 0.08, 0.12)
+TRUE_DELAYS = (0.0, 0.04, 0.08, 0.12, -0.04, -0.08)  # negative: the steering stamped late
 
 
 def errors_ms(scenario: str, duration: float, seeds: int, warm: bool) -> dict[float, list[tuple[float, float]]]:

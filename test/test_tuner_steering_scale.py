@@ -24,7 +24,7 @@ from test_validity import epochs_of
 
 from transplanter_ident.cli import replay, tuner
 from transplanter_ident.config.parameters import EstimatorConfig
-from transplanter_ident.config.params_file import load_params
+from transplanter_ident.config.params_file import EstimatorParams, load_params
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
 from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.sim.signals import multisine_steering
@@ -46,6 +46,18 @@ def test_the_search_finds_the_minimum_of_a_known_curve() -> None:
     assert estimate.configured == 0.8 and len(estimate.points) > 20
     with pytest.raises(ValueError, match="steering scale search"):
         search_steering_scale(lambda factors: factors, 1.0, low=1.05, high=0.95)
+    assert not estimate.at_edge and search_steering_scale(lambda fs: [1.0] * len(fs), 0.8).scale == 0.8  # ties: 1
+
+
+def test_a_minimum_at_the_edge_of_the_search_pins_nothing_and_says_so() -> None:
+    """The sensor's gain beyond +-5 %: the search ends at 1.05, its std is +inf, and the line says to calibrate."""
+    estimate = with_std(search_steering_scale(lambda factors: [(f - 1.08) ** 2 for f in factors], 1.0), 600)
+    assert estimate.at_edge and estimate.scale == pytest.approx(1.05) and estimate.std == math.inf
+    assert "at the edge of the scales searched, [0.95, 1.05]" in estimate.format("nll")
+    from transplanter_ident.cli.delay_search import scale_calibration
+
+    written = scale_calibration(estimate, EstimatorParams(), "nll")
+    assert written["ekf.steering_scale_uncertainty"][0] == 0.2  # the schema's bound: never valid on it
 
 
 def test_scaling_the_epochs_equals_assembling_with_the_scale() -> None:

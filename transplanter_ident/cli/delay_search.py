@@ -29,6 +29,7 @@ from typing import Any
 
 from transplanter_ident.cli.util import CliError
 from transplanter_ident.config.params_file import EstimatorParams
+from transplanter_ident.config.schema import PARAMS
 from transplanter_ident.tuning.delay import (
     DELAY_RANGE,
     DelayEstimate,
@@ -67,6 +68,16 @@ class DelayRun:
                 **held_uncertainty("ekf.delay_uncertainty", self.estimate.std,
                                    self.params.config.options.delay_uncertainty, 1.0, "the estimated gnss.delay",
                                    lambda v: f"{1e3 * v:.1f} ms")}
+
+
+def checked_delay_range(bounds: Sequence[float]) -> tuple[float, float]:
+    """``--delay-range LOW HIGH`` (s): finite, LOW < HIGH, within the range of ``gnss.delay`` (config/schema.py)."""
+    low, high = (float(b) for b in bounds)
+    floor, ceiling = PARAMS["gnss.delay"].low, PARAMS["gnss.delay"].high
+    if not (math.isfinite(low) and math.isfinite(high) and floor <= low < high <= ceiling):
+        raise CliError(f"--delay-range: need {floor:g} <= LOW < HIGH <= {ceiling:g} s (gnss.delay's range), "
+                       f"got {low:g} {high:g}")
+    return low, high
 
 
 def estimate_bag_delay(bags: Sequence[str], params: EstimatorParams, backend: Backend, *, objective: str,
@@ -145,3 +156,13 @@ def estimate_bag_steering_scale(decoded: Sequence[Any], params: EstimatorParams,
     factor = estimate.scale / configured
     return estimate, chosen, [store_bag_epochs(item.bag, chosen, scaled_epochs(e, factor), item.truth, cache)
                               for item, e in zip(decoded, epochs, strict=True)]
+
+
+def calibrate_steering_scale(decoded: Sequence[Any], params: EstimatorParams, backend: Backend,
+                             estimated: dict[str, tuple[float, str]], *, objective: str,
+                             tune_stiffness_noise: bool = False, cache: Path | None = None) -> tuple[EstimatorParams, list[Any]]:
+    """:func:`estimate_bag_steering_scale`, its keys to write added to ``estimated``; the parameters and epochs at it."""
+    scale, params, decoded = estimate_bag_steering_scale(decoded, params, backend, objective=objective,
+                                                         tune_stiffness_noise=tune_stiffness_noise, cache=cache)
+    estimated.update(scale_calibration(scale, params, objective))
+    return params, decoded

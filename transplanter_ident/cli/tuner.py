@@ -2,12 +2,12 @@
 
 ``tuner BAG [BAG ...] -o OUT.yaml [--params-file P.yaml ...] [--algorithm ipso|pso|cmaes]
 [--objective mae|nll] [--particles N] [--iterations N] [--seed N] [--report DIR] [--jobs N]
-[--dask ADDRESS] [--epoch-cache DIR | --no-epoch-cache] [--estimate-delay] [--estimate-steering-scale]
-[--tune-stiffness-noise] [--q-span DECADES] [--no-leave-one-out] [--debug]``
+[--dask ADDRESS] [--epoch-cache DIR | --no-epoch-cache] [--estimate-delay [--delay-range LOW HIGH]]
+[--estimate-steering-scale] [--tune-stiffness-noise] [--q-span DECADES] [--no-leave-one-out] [--debug]``
 
 1. reads each bag's epochs with the layered parameters, decoding a bag only if the epoch
    cache (:mod:`transplanter_ident.bags.cache`) does not hold it yet; with ``--estimate-delay``,
-   decodes each bag once and first searches ``gnss.delay`` over 0-0.3 s on the same objective at
+   decodes each bag once and first searches ``gnss.delay`` over -0.2-0.3 s on the same objective at
    the starting Q/R, with ``--estimate-steering-scale`` then ``vehicle.steering_scale``
    (:mod:`transplanter_ident.cli.delay_search`), and uses the epochs at the estimates;
 2. searches the log10 diagonal of Q and R (eq. 22, :mod:`tuning`): the physical noises (vy, r,
@@ -53,6 +53,7 @@ from transplanter_ident.config.params_writer import write_params_yaml
 from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.evaluation.cramer_rao import final_bound_line
 from transplanter_ident.files import atomic_output_dir
+from transplanter_ident.tuning.delay import DELAY_RANGE
 from transplanter_ident.tuning.multi import MultiBagProblem, leave_one_out
 from transplanter_ident.tuning.parallel import (
     Backend,
@@ -145,9 +146,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--allow-partial", action="store_true",
                         help="go on when fewer messages can be read than the bag's metadata counts (a corrupt chunk)")
     parser.add_argument("--estimate-delay", action="store_true",
-                        help="first search gnss.delay (0-0.3 s) on the bags with the same objective at the starting "
-                             "Q/R, then tune Q/R at that delay; writes gnss.delay (and, with nll, its std as "
-                             "ekf.delay_uncertainty) into OUT.yaml")
+                        help="first search gnss.delay (--delay-range) on the bags at the starting Q/R, then tune Q/R "
+                             "at it; writes it (with nll, and its std as ekf.delay_uncertainty) into OUT.yaml")
+    parser.add_argument("--delay-range", metavar=("LOW", "HIGH"), nargs=2, type=float, default=DELAY_RANGE, help=f"s "
+                        f"(default {DELAY_RANGE[0]:g} {DELAY_RANGE[1]:g}; < 0: the steering is stamped after the GNSS)")
     parser.add_argument("--estimate-steering-scale", action="store_true", help="then search vehicle.steering_scale "
                         "(0.95-1.05 x the configured) likewise, tune Q/R at it; writes it (with nll, and its std as "
                         "ekf.steering_scale_uncertainty) into OUT.yaml")
@@ -273,23 +275,21 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
         check_report_path(args.report)
     estimated: dict[str, tuple[float, str]] = {}  # calibration key -> (value, the search's line)
     if args.estimate_delay:  # gnss.delay first (issue #13 item 4), then Q/R on the epochs at that delay
-        from transplanter_ident.cli.delay_search import estimate_bag_delay
+        from transplanter_ident.cli.delay_search import checked_delay_range, estimate_bag_delay
 
         found = estimate_bag_delay(args.bags, params, local, objective=args.objective,
                                    tune_stiffness_noise=args.tune_stiffness_noise, cache=cache_dir(args),
-                                   allow_partial=args.allow_partial)
+                                   allow_partial=args.allow_partial, delay_range=checked_delay_range(args.delay_range))
         params, decoded = found.params, found.decoded
         estimated.update(found.calibration(args.objective))
         report_decoded(decoded, cache_dir(args), sys.stderr)
     else:
         decoded = load_bags(args.bags, params, local, cache_dir(args), allow_partial=args.allow_partial)
     if args.estimate_steering_scale:  # on the epochs at the delay, ahead of Q/R
-        from transplanter_ident.cli.delay_search import estimate_bag_steering_scale, scale_calibration
+        from transplanter_ident.cli.delay_search import calibrate_steering_scale
 
-        scale, params, decoded = estimate_bag_steering_scale(
-            decoded, params, local, objective=args.objective, tune_stiffness_noise=args.tune_stiffness_noise,
-            cache=cache_dir(args))
-        estimated.update(scale_calibration(scale, params, args.objective))
+        params, decoded = calibrate_steering_scale(decoded, params, local, estimated, objective=args.objective,
+                                                   tune_stiffness_noise=args.tune_stiffness_noise, cache=cache_dir(args))
     epochs = [item.epochs for item in decoded]
     truths = [item.truth for item in decoded]
     config = params.config

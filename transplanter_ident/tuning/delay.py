@@ -11,10 +11,12 @@ gives its own epochs: the bag's input samples, decoded once (``bags.inputs``), a
 again by the node's :class:`~transplanter_ident.epochs.assembler.EpochAssembler` with that
 delay (:func:`assemble_epochs`). A wrong delay shifts the measured response against the
 steering input, which the filter cannot explain, so the objective has its minimum near the
-true delay. :func:`search_delay`: a coarse grid over [low, high] (default 0-0.3 s in 20 ms
-steps), then a fine grid (2 ms) within one coarse step either side of the coarse minimum; the
-best point wins (ties: the smaller delay). Every grid's points are independent, so the caller
-evaluates them in parallel.
+true delay. :func:`search_delay`: a coarse grid over [low, high] (default -0.2-0.3 s in 20 ms
+steps: a GNSS driver that stamps on arrival is late, a steering driver that does is early, which
+is a negative delay), then a fine grid (2 ms) within one coarse step either side of the coarse
+minimum; the best point wins (ties: the delay nearest 0). Every grid's points are independent, so
+the caller evaluates them in parallel. A minimum at an edge of the range does not pin the delay
+(it may lie beyond): its std is +inf and the estimate says so (:attr:`DelayEstimate.at_edge`).
 
 The estimate's std (:func:`profile_std`, objective ``nll`` only) comes from the curvature of the
 total NLL around the minimum: the objective is a profile likelihood (the filter re-estimates the
@@ -38,8 +40,9 @@ from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssemble
 from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.tuning.problem import TuningProblem
 
-#: s: the delays searched (receivers that stamp on arrival are 0-0.3 s late)
-DELAY_RANGE = (0.0, 0.3)
+#: s: the delays searched (GNSS receivers stamped on arrival are 0-0.3 s late; a steering sensor
+#: stamped on arrival, behind a GNSS stamped by its receiver, makes the delay negative)
+DELAY_RANGE = (-0.2, 0.3)
 COARSE_STEP = 0.02  # s
 FINE_STEP = 0.002  # s
 #: s: the fine points either side of the minimum through which :func:`profile_std` fits its parabola
@@ -133,6 +136,12 @@ class DelayEstimate:
     fitness: float
     points: tuple[tuple[float, float], ...]
     std: float = math.nan
+    bounds: tuple[float, float] = DELAY_RANGE  # s, the range searched
+
+    @property
+    def at_edge(self) -> bool:
+        """Whether the minimum lies at an edge of the range searched (the delay may lie beyond it)."""
+        return at_range_edge(self.delay, self.bounds)
 
     def value_at(self, delay: float) -> float:
         """The objective evaluated at ``delay`` (NaN if it was not evaluated)."""
@@ -143,8 +152,11 @@ class DelayEstimate:
         at_zero = self.value_at(0.0)
         zero = f"; at 0 ms {at_zero:.6g}" if math.isfinite(at_zero) else ""
         spread = f" +- {1e3 * self.std:.1f}" if math.isfinite(self.std) else ""
+        low, high = (round(1e3 * b) for b in self.bounds)
+        edge = (f"; at the edge of the range searched, [{low}, {high}] ms: the delay may lie beyond it, widen "
+                "--delay-range" if self.at_edge else "")
         return (f"gnss.delay: {1e3 * self.delay:.0f}{spread} ms ({objective} {self.fitness:.6g} at the starting "
-                f"Q/R{zero}; {len(self.points)} delays evaluated)")
+                f"Q/R{zero}; {len(self.points)} delays evaluated{edge})")
 
 
 def serial_scores(bags: Sequence[Sequence[Sample]], params: EstimatorParams, objective: str,
@@ -167,6 +179,8 @@ def estimate_delay(scores: BagScores, objective: str, low: float = DELAY_RANGE[0
     estimate = search_delay(pooled_objective, low, high)
     if objective != "nll":  # only a likelihood's curvature is the estimate's information
         return estimate
+    if estimate.at_edge:  # the minimum may lie beyond the range: nothing within it pins the delay
+        return replace(estimate, std=math.inf)
     return replace(estimate, std=profile_std(estimate.points, estimate.delay, epochs[estimate.delay]))
 
 
@@ -177,15 +191,21 @@ def _grid(low: float, high: float, step: float) -> list[float]:
 
 def search_delay(objective: DelayObjective, low: float = DELAY_RANGE[0], high: float = DELAY_RANGE[1],
                  coarse: float = COARSE_STEP, fine: float = FINE_STEP) -> DelayEstimate:
-    """Minimise ``objective`` over [low, high]: a coarse grid, then a fine grid around its minimum."""
-    return DelayEstimate(*grid_search(objective, low, high, coarse, fine, "delay"))
+    """Minimise ``objective`` over [low, high]: a coarse grid, then a fine grid around its minimum (ties: nearest 0)."""
+    return DelayEstimate(*grid_search(objective, low, high, coarse, fine, "delay", prefer=0.0), bounds=(low, high))
+
+
+def at_range_edge(point: float, bounds: tuple[float, float]) -> bool:
+    """Whether a grid search's ``point`` is an end of its ``bounds`` (its minimum may lie beyond them)."""
+    return min(abs(point - bounds[0]), abs(point - bounds[1])) < 1e-9
 
 
 def grid_search(objective: DelayObjective, low: float, high: float, coarse: float, fine: float,
-                what: str = "grid") -> tuple[float, float, tuple[tuple[float, float], ...]]:
+                what: str = "grid", prefer: float | None = None) -> tuple[float, float, tuple[tuple[float, float], ...]]:
     """(best point, its value, every (point, value) by point): a coarse grid, then a fine one around its minimum.
 
-    Ties go to the smaller point; a non-finite value counts as +inf. Shared by the calibration searches.
+    Ties go to the point nearest ``prefer`` (default ``low``), then to the smaller; a non-finite value
+    counts as +inf. Shared by the calibration searches.
     """
     if not (math.isfinite(low) and math.isfinite(high) and low < high and 0.0 < fine <= coarse):
         raise ValueError(f"{what} search: need low < high and 0 < fine <= coarse, got [{low}, {high}], {coarse}, "
@@ -198,8 +218,13 @@ def grid_search(objective: DelayObjective, low: float, high: float, coarse: floa
             values = objective(todo)
             seen.update((d, float(v) if math.isfinite(v) else math.inf) for d, v in zip(todo, values, strict=True))
 
+    centre = low if prefer is None else prefer
+
+    def order(d: float) -> tuple[float, float, float]:
+        return seen[d], abs(d - centre), d
+
     evaluate(_grid(low, high, coarse))
-    best = min(seen, key=lambda d: (seen[d], d))
+    best = min(seen, key=order)
     evaluate(_grid(max(low, best - coarse), min(high, best + coarse), fine))
-    best = min(seen, key=lambda d: (seen[d], d))
+    best = min(seen, key=order)
     return best, seen[best], tuple(sorted(seen.items()))

@@ -13,7 +13,9 @@ centre line only, as a sensor on one wheel goes through the nonlinear Ackermann 
 refuses that case), and the filter
 starts from the stiffness and offset a first pass at that factor ends with (:func:`.delay.warm_start`).
 
-Over [0.95, 1.05] x the configured scale, in 0.5 % then 0.05 % steps (:func:`.delay.grid_search`).
+Over [0.95, 1.05] x the configured scale, in 0.5 % then 0.05 % steps (:func:`.delay.grid_search`;
+ties: the factor nearest 1). A minimum at an edge of that range does not pin the scale: its std is
++inf, and the estimate says so (:attr:`ScaleEstimate.at_edge`).
 On a 2-minute identification drive the NLL's minimum lies within about +-0.7 % of the truth
 (likelihood 1-sigma ~0.35 %), so tune on several bags. With the objective ``nll`` the estimate's
 std is the curvature of the pooled NLL there (:func:`with_std`, :func:`.delay.profile_std`).
@@ -31,6 +33,7 @@ from transplanter_ident.epochs.epoch import Epoch, EpochArrays
 from transplanter_ident.tuning.delay import (
     MIN_DELAY_EPOCHS,
     DelayObjective,
+    at_range_edge,
     grid_search,
     pooled,
     profile_std,
@@ -84,25 +87,39 @@ class ScaleEstimate:
     fitness: float
     points: tuple[tuple[float, float], ...]  # (factor on the configured scale, objective)
     std: float = math.nan
+    bounds: tuple[float, float] = FACTOR_RANGE  # the factors searched
+
+    @property
+    def at_edge(self) -> bool:
+        """Whether the minimum lies at an edge of the factors searched (the scale may lie beyond them)."""
+        return at_range_edge(self.scale / self.configured, self.bounds)
 
     def format(self, objective: str = "objective") -> str:
         """One line: the estimate, its objective, and the objective at the configured scale."""
         at_configured = next((v for f, v in self.points if abs(f - 1.0) < 1e-9), math.nan)
         spread = f" +- {self.std:.4f}" if math.isfinite(self.std) else ""
+        low, high = (self.configured * b for b in self.bounds)
+        edge = (f"; at the edge of the scales searched, [{low:.4g}, {high:.4g}]: the sensor's scale may lie beyond "
+                "them, calibrate it against the wheel angle" if self.at_edge else "")
         return (f"vehicle.steering_scale: {self.scale:.4f}{spread} ({objective} {self.fitness:.6g} at the starting Q/R; "
-                f"{at_configured:.6g} at the configured {self.configured:g}; {len(self.points)} scales evaluated)")
+                f"{at_configured:.6g} at the configured {self.configured:g}; {len(self.points)} scales evaluated{edge})")
 
 
 def search_steering_scale(objective: DelayObjective, configured: float, low: float = FACTOR_RANGE[0],
                           high: float = FACTOR_RANGE[1], coarse: float = COARSE_STEP,
                           fine: float = FINE_STEP) -> ScaleEstimate:
     """Minimise ``objective`` (of factors on ``configured``) over [low, high]: coarse grid, then fine."""
-    factor, fitness, points = grid_search(objective, low, high, coarse, fine, "steering scale")
-    return ScaleEstimate(configured * factor, configured, fitness, points)
+    factor, fitness, points = grid_search(objective, low, high, coarse, fine, "steering scale", prefer=1.0)
+    return ScaleEstimate(configured * factor, configured, fitness, points, bounds=(low, high))
 
 
 def with_std(estimate: ScaleEstimate, epochs: int) -> ScaleEstimate:
-    """``estimate`` with its std: the curvature of the pooled NLL (mean over ``epochs`` epochs) at its minimum."""
+    """``estimate`` with its std: the curvature of the pooled NLL (mean over ``epochs`` epochs) at its minimum.
+
+    +inf at an edge of the factors searched (the minimum may lie beyond them).
+    """
+    if estimate.at_edge:
+        return replace(estimate, std=math.inf)
     factor = estimate.scale / estimate.configured
     std = profile_std(estimate.points, factor, epochs, CURVATURE_WINDOW, FINE_STEP)
     return replace(estimate, std=estimate.configured * std)
