@@ -42,18 +42,18 @@ TOLERANCE = 0.005  # relative
 def test_the_search_finds_the_minimum_of_a_known_curve() -> None:
     """A parabola in the factor with its minimum at 1.013: the scale is 0.8 x 1.013 within the fine step."""
     estimate = search_steering_scale(lambda factors: [(f - 1.013) ** 2 for f in factors], 0.8)
-    assert estimate.scale == pytest.approx(0.8 * 1.013, abs=0.8 * 0.0005)
+    assert estimate.value == pytest.approx(0.8 * 1.013, abs=0.8 * 0.0005)
     assert estimate.configured == 0.8 and len(estimate.points) > 20
-    with pytest.raises(ValueError, match="steering scale search"):
+    with pytest.raises(ValueError, match="vehicle.steering_scale search"):
         search_steering_scale(lambda factors: factors, 1.0, low=1.05, high=0.95)
-    assert not estimate.at_edge and search_steering_scale(lambda fs: [1.0] * len(fs), 0.8).scale == 0.8  # ties: 1
+    assert not estimate.at_edge and search_steering_scale(lambda fs: [1.0] * len(fs), 0.8).value == 0.8  # ties: 1
 
 
 def test_a_minimum_at_the_edge_of_the_search_pins_nothing_and_says_so() -> None:
     """The sensor's gain beyond +-5 %: the search ends at 1.05, its std is +inf, and the line says to calibrate."""
     estimate = with_std(search_steering_scale(lambda factors: [(f - 1.08) ** 2 for f in factors], 1.0), 600)
-    assert estimate.at_edge and estimate.scale == pytest.approx(1.05) and estimate.std == math.inf
-    assert "at the edge of the scales searched, [0.95, 1.05]" in estimate.format("nll")
+    assert estimate.at_edge and estimate.value == pytest.approx(1.05) and estimate.std == math.inf
+    assert "at the edge of the values searched, [0.95, 1.05]" in estimate.format("nll")
     from transplanter_ident.cli.delay_search import scale_calibration
 
     written = scale_calibration(estimate, EstimatorParams(), "nll")
@@ -82,10 +82,10 @@ MULTISINE = multisine_steering(math.radians(10.0), (3.0, 5.0, 9.0, 14.0), seed=3
 def test_the_scale_is_found_on_three_drives(sensor_gain: float, drive: dict, tolerance: float) -> None:
     bags = [epochs_of(simulate(sine_drive(seed, steering_scale=sensor_gain, **drive))) for seed in range(3)]
     estimate = search_steering_scale(pooled_scale_objective(bags, EstimatorConfig(), "nll"), 1.0)
-    assert abs(estimate.scale * sensor_gain - 1.0) <= tolerance, estimate.format("nll")
+    assert abs(estimate.value * sensor_gain - 1.0) <= tolerance, estimate.format("nll")
     # its std, from the NLL's curvature over the three drives' epochs
     estimate = with_std(estimate, sum(len(bag) for bag in bags))
-    error = estimate.scale - 1.0 / sensor_gain
+    error = estimate.value - 1.0 / sensor_gain
     assert 0.0003 <= estimate.std <= 0.01 and abs(error) <= 3.0 * estimate.std, (error, estimate.format("nll"))
 
 

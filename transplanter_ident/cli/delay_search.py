@@ -12,6 +12,9 @@ the objective ``nll`` the estimate has a std (:func:`transplanter_ident.tuning.d
 over all the bags' epochs), which goes into ``ekf.delay_uncertainty`` (:meth:`DelayRun.calibration`):
 the timing error it may leave is then in the reported Cf, Cr std.
 
+``--estimate-yaw-inertia`` last finds ``vehicle.iz`` (:mod:`transplanter_ident.tuning.yaw_inertia`)
+on the same epochs; its std is printed and written as a comment, not into the band.
+
 ``--estimate-steering-scale`` then finds ``vehicle.steering_scale`` on those epochs
 (:mod:`transplanter_ident.tuning.steering_scale`; the (bag, scale) pairs of a grid in parallel) and
 hands on the epochs at the estimated scale, cached under the parameters with it; with ``nll`` its
@@ -23,7 +26,7 @@ from __future__ import annotations
 import math
 import sys
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -38,15 +41,22 @@ from transplanter_ident.tuning.delay import (
     estimate_delay,
     with_delay,
 )
+from transplanter_ident.tuning.factor_search import FactorEstimate
 from transplanter_ident.tuning.parallel import Backend
+from transplanter_ident.tuning.scale_and_inertia import pooled_pair_objective, search_scale_and_inertia
 from transplanter_ident.tuning.steering_scale import (
-    ScaleEstimate,
     pooled_scale_objective,
     scaled_epochs,
     search_steering_scale,
     with_std,
     with_steering_scale,
 )
+from transplanter_ident.tuning.yaw_inertia import (
+    pooled_inertia_objective,
+    search_yaw_inertia,
+    with_yaw_inertia,
+)
+from transplanter_ident.tuning.yaw_inertia import with_std as with_inertia_std
 
 
 @dataclass(frozen=True)
@@ -106,13 +116,13 @@ def estimate_bag_delay(bags: Sequence[str], params: EstimatorParams, backend: Ba
     return DelayRun(estimate, chosen, decoded)
 
 
-def scale_calibration(estimate: ScaleEstimate, params: EstimatorParams, objective: str) -> dict[str, tuple[float, str]]:
+def scale_calibration(estimate: FactorEstimate, params: EstimatorParams, objective: str) -> dict[str, tuple[float, str]]:
     """The keys to write: ``vehicle.steering_scale``, and ``ekf.steering_scale_uncertainty`` when it has a std.
 
     The std relative to the scale, combined with the configured uncertainty, capped at the schema's 0.2.
     """
-    return {"vehicle.steering_scale": (estimate.scale, estimate.format(objective)),
-            **held_uncertainty("ekf.steering_scale_uncertainty", estimate.std / estimate.scale,
+    return {"vehicle.steering_scale": (estimate.value, estimate.format(objective)),
+            **held_uncertainty("ekf.steering_scale_uncertainty", estimate.std / estimate.value,
                                params.config.options.steering_scale_uncertainty, 0.2, "the estimated scale",
                                lambda v: f"{100 * v:.2f} %")}
 
@@ -132,9 +142,12 @@ def held_uncertainty(key: str, std: float, configured: float, cap: float, what: 
 
 def estimate_bag_steering_scale(decoded: Sequence[Any], params: EstimatorParams, backend: Backend, *,
                                 objective: str, tune_stiffness_noise: bool = False, cache: Path | None = None,
-                                stream: Any = None) -> tuple[ScaleEstimate, EstimatorParams, list[Any]]:
-    """Search the scale on the decoded bags; return it, the parameters with it, and the bags' epochs at it.
+                                with_inertia: bool = False,
+                                stream: Any = None) -> tuple[FactorEstimate, FactorEstimate | None, EstimatorParams,
+                                                             list[Any]]:
+    """Search the scale (and with ``with_inertia`` Iz jointly) on the decoded bags.
 
+    Returns the scale, Iz (or None), the parameters with them, and the bags' epochs at the scale.
     Only for a sensor on the centre line: one wheel's angle goes through the nonlinear Ackermann map,
     so scaling the epochs (:func:`~transplanter_ident.tuning.steering_scale.scaled_epochs`) would not
     be assembling with that scale.
@@ -145,24 +158,58 @@ def estimate_bag_steering_scale(decoded: Sequence[Any], params: EstimatorParams,
     if vehicle.steering_sensor_wheel != "center":
         raise CliError(f"--estimate-steering-scale needs vehicle.steering_sensor_wheel: center, got "
                        f"{vehicle.steering_sensor_wheel!r} (calibrate a sensor on one wheel against that wheel)")
-    configured = vehicle.steering_scale
     epochs = [item.epochs for item in decoded]
-    estimate = search_steering_scale(pooled_scale_objective(epochs, params.config, objective, tune_stiffness_noise,
-                                                            backend.map), configured)
+    count = sum(len(e) for e in epochs) if objective == "nll" else None  # a likelihood: its curvature is the information
+    inertia = None
+    if with_inertia:
+        estimate, inertia = search_scale_and_inertia(
+            pooled_pair_objective(epochs, params.config, objective, tune_stiffness_noise, backend.map),
+            (vehicle.steering_scale, vehicle.yaw_inertia), count)
+        params = replace(params, config=with_yaw_inertia(params.config, inertia.value))
+    else:
+        estimate = search_steering_scale(pooled_scale_objective(epochs, params.config, objective, tune_stiffness_noise,
+                                                                backend.map), vehicle.steering_scale)
+        estimate = with_std(estimate, count) if count else estimate
+    for found in (estimate, inertia):
+        if found is not None:
+            print(f"tuner: {found.format(objective)}", file=stream if stream is not None else sys.stderr, flush=True)
+    chosen = with_steering_scale(params, estimate.value)
+    return estimate, inertia, chosen, [store_bag_epochs(item.bag, chosen, scaled_epochs(e, estimate.factor), item.truth,
+                                                        cache) for item, e in zip(decoded, epochs, strict=True)]
+
+
+def calibrate_vehicle(decoded: Sequence[Any], params: EstimatorParams, backend: Backend,
+                      estimated: dict[str, tuple[float, str]], *, objective: str, steering_scale: bool,
+                      yaw_inertia: bool, tune_stiffness_noise: bool = False,
+                      cache: Path | None = None) -> tuple[EstimatorParams, list[Any]]:
+    """``--estimate-steering-scale`` and ``--estimate-yaw-inertia`` (both: jointly) on the epochs at the delay.
+
+    Adds the keys to write to ``estimated``; returns the parameters and the bags' epochs at the estimates.
+    """
+    inertia = None
+    if steering_scale:
+        scale, inertia, params, decoded = estimate_bag_steering_scale(
+            decoded, params, backend, objective=objective, tune_stiffness_noise=tune_stiffness_noise, cache=cache,
+            with_inertia=yaw_inertia)
+        estimated.update(scale_calibration(scale, params, objective))
+    elif yaw_inertia:
+        inertia = estimate_bag_yaw_inertia([item.epochs for item in decoded], params, backend, objective=objective,
+                                           tune_stiffness_noise=tune_stiffness_noise)
+        params = replace(params, config=with_yaw_inertia(params.config, inertia.value))
+    if inertia is not None:
+        estimated["vehicle.iz"] = (inertia.value, inertia.format(objective) + (
+            f"; the Cf, Cr std do not hold its {100 * inertia.std / inertia.value:.1f} %"
+            if math.isfinite(inertia.std) else ""))
+    return params, list(decoded)
+
+
+def estimate_bag_yaw_inertia(epochs: Sequence[Any], params: EstimatorParams, backend: Backend, *, objective: str,
+                             tune_stiffness_noise: bool = False, stream: Any = None) -> FactorEstimate:
+    """Search ``vehicle.iz`` on the bags' epochs (the (bag, factor) pairs of a grid in parallel); print it."""
+    config = params.config
+    estimate = search_yaw_inertia(pooled_inertia_objective(epochs, config, objective, tune_stiffness_noise,
+                                                           backend.map), config.vehicle.yaw_inertia)
     if objective == "nll":  # a likelihood: its curvature is the estimate's information
-        estimate = with_std(estimate, sum(len(e) for e in epochs))
+        estimate = with_inertia_std(estimate, sum(len(e) for e in epochs))
     print(f"tuner: {estimate.format(objective)}", file=stream if stream is not None else sys.stderr, flush=True)
-    chosen = with_steering_scale(params, estimate.scale)
-    factor = estimate.scale / configured
-    return estimate, chosen, [store_bag_epochs(item.bag, chosen, scaled_epochs(e, factor), item.truth, cache)
-                              for item, e in zip(decoded, epochs, strict=True)]
-
-
-def calibrate_steering_scale(decoded: Sequence[Any], params: EstimatorParams, backend: Backend,
-                             estimated: dict[str, tuple[float, str]], *, objective: str,
-                             tune_stiffness_noise: bool = False, cache: Path | None = None) -> tuple[EstimatorParams, list[Any]]:
-    """:func:`estimate_bag_steering_scale`, its keys to write added to ``estimated``; the parameters and epochs at it."""
-    scale, params, decoded = estimate_bag_steering_scale(decoded, params, backend, objective=objective,
-                                                         tune_stiffness_noise=tune_stiffness_noise, cache=cache)
-    estimated.update(scale_calibration(scale, params, objective))
-    return params, decoded
+    return estimate

@@ -1,31 +1,28 @@
 """The `tuner` command: IPSO/PSO/CMA-ES tuning of the EKF's Q and R on bags (paper eqs. 15-22, Table 2).
 
-``tuner BAG [BAG ...] -o OUT.yaml [--params-file P.yaml ...] [--algorithm ipso|pso|cmaes]
-[--objective mae|nll] [--particles N] [--iterations N] [--seed N] [--report DIR] [--jobs N]
-[--dask ADDRESS] [--epoch-cache DIR | --no-epoch-cache] [--estimate-delay [--delay-range LOW HIGH]]
-[--estimate-steering-scale] [--tune-stiffness-noise] [--q-span DECADES] [--no-leave-one-out] [--debug]``
+``tuner BAG [BAG ...] -o OUT.yaml [--params-file P.yaml ...] [--algorithm ipso|pso|cmaes] [--objective mae|nll]
+[--particles N] [--iterations N] [--seed N] [--report DIR] [--jobs N] [--dask ADDRESS] [--epoch-cache DIR |
+--no-epoch-cache] [--estimate-delay [--delay-range LOW HIGH]] [--estimate-steering-scale] [--estimate-yaw-inertia]
+[--tune-stiffness-noise] [--q-span DECADES] [--no-leave-one-out] [--debug]``
 
-1. reads each bag's epochs with the layered parameters, decoding a bag only if the epoch
-   cache (:mod:`transplanter_ident.bags.cache`) does not hold it yet; with ``--estimate-delay``,
-   decodes each bag once and first searches ``gnss.delay`` over -0.2-0.3 s on the same objective at
-   the starting Q/R, with ``--estimate-steering-scale`` then ``vehicle.steering_scale``
-   (:mod:`transplanter_ident.cli.delay_search`), and uses the epochs at the estimates;
-2. searches the log10 diagonal of Q and R (eq. 22, :mod:`tuning`): the physical noises (vy, r,
-   psi process noise and R; the stiffness and offset random walks and the change mechanism keep
-   their designed values unless ``--tune-stiffness-noise``; each process noise within
-   ``--q-span`` decades of its configured value) with IPSO (eqs. 17-20),
-   standard PSO (eqs. 15-16) or CMA-ES, minimising eq. (21) (``mae``) or the innovation NLL
-   (``nll``), averaged over the bags with their epoch counts as weights; the starting Q/R is
-   one of the initial candidates; one progress line per iteration. The candidates run on
-   ``--jobs`` processes or a Dask cluster (:mod:`transplanter_ident.tuning.parallel`): the
-   result for a seed is the same either way;
+1. reads each bag's epochs with the layered parameters, decoding a bag only if the epoch cache
+   (:mod:`transplanter_ident.bags.cache`) does not hold it yet; with ``--estimate-delay``, decodes each
+   bag once and first searches ``gnss.delay`` over -0.2-0.3 s on the same objective at the starting Q/R,
+   then ``vehicle.steering_scale`` and ``vehicle.iz`` if asked (:mod:`transplanter_ident.cli.delay_search`),
+   and uses the epochs at the estimates;
+2. searches the log10 diagonal of Q and R (eq. 22, :mod:`tuning`): the physical noises (vy, r, psi process
+   noise and R; the stiffness and offset random walks and the change mechanism keep their designed values
+   unless ``--tune-stiffness-noise``; each process noise within ``--q-span`` decades of its configured
+   value) with IPSO (eqs. 17-20), standard PSO (eqs. 15-16) or CMA-ES, minimising eq. (21) (``mae``) or the
+   innovation NLL (``nll``), averaged over the bags with their epoch counts as weights; the starting Q/R is
+   one of the initial candidates; one progress line per iteration. The candidates run on ``--jobs``
+   processes or a Dask cluster (:mod:`transplanter_ident.tuning.parallel`): the same result either way;
 3. writes OUT.yaml atomically: ``ekf.process_noise``, ``ekf.measurement_noise`` (and the heading Q they
    were tuned with), the ``ekf`` options they are valid for, and the estimates of step 1, under a comment
    header; it layers over the defaults (``--params-file config/estimator.yaml --params-file OUT.yaml``);
-4. prints the paper's Table 2 for the starting and the tuned Q/R on each bag, and the
-   tuned/start ratios of the mean errors; with several bags, a leave-one-bag-out table
-   (:func:`transplanter_ident.tuning.multi.leave_one_out`); ``--report DIR`` adds the plots
-   of Figs. 4-7 and the tables.
+4. prints the paper's Table 2 for the starting and the tuned Q/R on each bag, and the tuned/start ratios of
+   the mean errors; with several bags, a leave-one-bag-out table (:func:`transplanter_ident.tuning.multi.leave_one_out`);
+   ``--report DIR`` adds the plots of Figs. 4-7 and the tables.
 
 Every failure (unreadable bag, too few epochs, unwritable output, bad flag) is one line on stderr and
 a non-zero exit; a half-written YAML is never left behind. When no candidate produced a finite
@@ -153,6 +150,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--estimate-steering-scale", action="store_true", help="then search vehicle.steering_scale "
                         "(0.95-1.05 x the configured) likewise, tune Q/R at it; writes it (with nll, and its std as "
                         "ekf.steering_scale_uncertainty) into OUT.yaml")
+    parser.add_argument("--estimate-yaw-inertia", action="store_true", help="then search vehicle.iz (0.6-1.6 x the "
+                        "configured, m lf lr if 0) likewise, tune Q/R at it; writes it into OUT.yaml")
     parser.add_argument("--tune-stiffness-noise", action="store_true",
                         help="also tune the stiffness random walk (q_Cf, q_Cr of ekf.process_noise); by default "
                              "only the physical noises (vy, r, psi and R) are tuned and the stiffness and offset "
@@ -285,11 +284,12 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
         report_decoded(decoded, cache_dir(args), sys.stderr)
     else:
         decoded = load_bags(args.bags, params, local, cache_dir(args), allow_partial=args.allow_partial)
-    if args.estimate_steering_scale:  # on the epochs at the delay, ahead of Q/R
-        from transplanter_ident.cli.delay_search import calibrate_steering_scale
+    if args.estimate_steering_scale or args.estimate_yaw_inertia:  # on the epochs at the delay, ahead of Q/R
+        from transplanter_ident.cli.delay_search import calibrate_vehicle
 
-        params, decoded = calibrate_steering_scale(decoded, params, local, estimated, objective=args.objective,
-                                                   tune_stiffness_noise=args.tune_stiffness_noise, cache=cache_dir(args))
+        params, decoded = calibrate_vehicle(decoded, params, local, estimated, objective=args.objective,
+                                            steering_scale=args.estimate_steering_scale, yaw_inertia=args.estimate_yaw_inertia,
+                                            tune_stiffness_noise=args.tune_stiffness_noise, cache=cache_dir(args))
     epochs = [item.epochs for item in decoded]
     truths = [item.truth for item in decoded]
     config = params.config

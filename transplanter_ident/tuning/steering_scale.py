@@ -15,7 +15,7 @@ starts from the stiffness and offset a first pass at that factor ends with (:fun
 
 Over [0.95, 1.05] x the configured scale, in 0.5 % then 0.05 % steps (:func:`.delay.grid_search`;
 ties: the factor nearest 1). A minimum at an edge of that range does not pin the scale: its std is
-+inf, and the estimate says so (:attr:`ScaleEstimate.at_edge`).
++inf, and the estimate says so (:class:`.factor_search.FactorEstimate`).
 On a 2-minute identification drive the NLL's minimum lies within about +-0.7 % of the truth
 (likelihood 1-sigma ~0.35 %), so tune on several bags. With the objective ``nll`` the estimate's
 std is the curvature of the pooled NLL there (:func:`with_std`, :func:`.delay.profile_std`).
@@ -24,20 +24,19 @@ std is the curvature of the pooled NLL there (:func:`with_std`, :func:`.delay.pr
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, fields, replace
+from collections.abc import Sequence
+from dataclasses import fields, replace
 
 from transplanter_ident.config.parameters import EstimatorConfig
 from transplanter_ident.config.params_file import EstimatorParams
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
-from transplanter_ident.tuning.delay import (
-    MIN_DELAY_EPOCHS,
-    DelayObjective,
-    at_range_edge,
-    grid_search,
-    pooled,
-    profile_std,
-    warm_start,
+from transplanter_ident.tuning.delay import MIN_DELAY_EPOCHS, DelayObjective, warm_start
+from transplanter_ident.tuning.factor_search import (
+    FactorEstimate,
+    TaskMap,
+    pooled_factor_objective,
+    search_factor,
+    with_factor_std,
 )
 from transplanter_ident.tuning.problem import TuningProblem
 
@@ -48,8 +47,6 @@ FINE_STEP = 0.0005
 #: factors either side of the minimum through which :func:`with_std` fits the NLL's parabola
 CURVATURE_WINDOW = 0.0025
 _NAMES = [f.name for f in fields(Epoch)]
-#: (function, argument tuples) -> results in order: a backend's ``map`` (tuning.parallel), or here
-TaskMap = Callable[[Callable[..., tuple[float, int]], list[tuple]], list[tuple[float, int]]]
 
 
 def scaled_epochs(epochs: EpochArrays, factor: float) -> EpochArrays:
@@ -75,64 +72,23 @@ def scale_objective(epochs: EpochArrays, config: EstimatorConfig, factor: float,
     return float(problem(problem.start[None, :])[0]), len(epochs)
 
 
-@dataclass(frozen=True)
-class ScaleEstimate:
-    """The scale with the lowest objective, the configured one it was searched from, every point, its std.
-
-    ``std``: 1-sigma of ``scale`` (:func:`with_std`); NaN where unknown (objective ``mae``).
-    """
-
-    scale: float
-    configured: float
-    fitness: float
-    points: tuple[tuple[float, float], ...]  # (factor on the configured scale, objective)
-    std: float = math.nan
-    bounds: tuple[float, float] = FACTOR_RANGE  # the factors searched
-
-    @property
-    def at_edge(self) -> bool:
-        """Whether the minimum lies at an edge of the factors searched (the scale may lie beyond them)."""
-        return at_range_edge(self.scale / self.configured, self.bounds)
-
-    def format(self, objective: str = "objective") -> str:
-        """One line: the estimate, its objective, and the objective at the configured scale."""
-        at_configured = next((v for f, v in self.points if abs(f - 1.0) < 1e-9), math.nan)
-        spread = f" +- {self.std:.4f}" if math.isfinite(self.std) else ""
-        low, high = (self.configured * b for b in self.bounds)
-        edge = (f"; at the edge of the scales searched, [{low:.4g}, {high:.4g}]: the sensor's scale may lie beyond "
-                "them, calibrate it against the wheel angle" if self.at_edge else "")
-        return (f"vehicle.steering_scale: {self.scale:.4f}{spread} ({objective} {self.fitness:.6g} at the starting Q/R; "
-                f"{at_configured:.6g} at the configured {self.configured:g}; {len(self.points)} scales evaluated{edge})")
+#: what the tuner advises when the scale's minimum is at an edge of the factors searched
+EDGE_ADVICE = "calibrate the sensor against the wheel angle"
 
 
 def search_steering_scale(objective: DelayObjective, configured: float, low: float = FACTOR_RANGE[0],
                           high: float = FACTOR_RANGE[1], coarse: float = COARSE_STEP,
-                          fine: float = FINE_STEP) -> ScaleEstimate:
+                          fine: float = FINE_STEP) -> FactorEstimate:
     """Minimise ``objective`` (of factors on ``configured``) over [low, high]: coarse grid, then fine."""
-    factor, fitness, points = grid_search(objective, low, high, coarse, fine, "steering scale", prefer=1.0)
-    return ScaleEstimate(configured * factor, configured, fitness, points, bounds=(low, high))
+    return search_factor(objective, "vehicle.steering_scale", configured, (low, high), coarse, fine, EDGE_ADVICE)
 
 
-def with_std(estimate: ScaleEstimate, epochs: int) -> ScaleEstimate:
-    """``estimate`` with its std: the curvature of the pooled NLL (mean over ``epochs`` epochs) at its minimum.
-
-    +inf at an edge of the factors searched (the minimum may lie beyond them).
-    """
-    if estimate.at_edge:
-        return replace(estimate, std=math.inf)
-    factor = estimate.scale / estimate.configured
-    std = profile_std(estimate.points, factor, epochs, CURVATURE_WINDOW, FINE_STEP)
-    return replace(estimate, std=estimate.configured * std)
+def with_std(estimate: FactorEstimate, epochs: int) -> FactorEstimate:
+    """``estimate`` with its std: the curvature of the pooled NLL (mean over ``epochs`` epochs); +inf at an edge."""
+    return with_factor_std(estimate, epochs, CURVATURE_WINDOW, FINE_STEP)
 
 
 def pooled_scale_objective(bags: Sequence[EpochArrays], config: EstimatorConfig, objective: str,
                            tune_stiffness_noise: bool = False, run: TaskMap | None = None) -> DelayObjective:
     """The objective of a batch of factors, pooled over ``bags``; every (factor, bag) a task of ``run``."""
-    run = run or (lambda fn, tasks: [fn(*task) for task in tasks])
-
-    def of(factors: Sequence[float]) -> list[float]:
-        tasks = [(e, config, f, objective, tune_stiffness_noise) for f in factors for e in bags]
-        values = run(scale_objective, tasks)
-        return [pooled(values[i * len(bags):(i + 1) * len(bags)]) for i in range(len(factors))]
-
-    return of
+    return pooled_factor_objective(scale_objective, bags, config, objective, tune_stiffness_noise, run)
