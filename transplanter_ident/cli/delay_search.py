@@ -12,8 +12,9 @@ the objective ``nll`` the estimate has a std (:func:`transplanter_ident.tuning.d
 over all the bags' epochs), which goes into ``ekf.delay_uncertainty`` (:meth:`DelayRun.calibration`):
 the timing error it may leave is then in the reported Cf, Cr std.
 
-``--estimate-yaw-inertia`` last finds ``vehicle.iz`` (:mod:`transplanter_ident.tuning.yaw_inertia`)
-on the same epochs; its std is printed and written as a comment, not into the band.
+``--estimate-yaw-inertia`` last finds ``vehicle.iz`` (:mod:`transplanter_ident.tuning.yaw_inertia`; with
+``--estimate-steering-scale`` jointly, :mod:`transplanter_ident.tuning.scale_and_inertia`) on the same
+epochs; with ``nll`` its std goes into ``ekf.yaw_inertia_uncertainty`` (:func:`inertia_calibration`).
 
 ``--estimate-steering-scale`` then finds ``vehicle.steering_scale`` on those epochs
 (:mod:`transplanter_ident.tuning.steering_scale`; the (bag, scale) pairs of a grid in parallel) and
@@ -197,10 +198,19 @@ def calibrate_vehicle(decoded: Sequence[Any], params: EstimatorParams, backend: 
                                            tune_stiffness_noise=tune_stiffness_noise)
         params = replace(params, config=with_yaw_inertia(params.config, inertia.value))
     if inertia is not None:
-        estimated["vehicle.iz"] = (inertia.value, inertia.format(objective) + (
-            f"; the Cf, Cr std do not hold its {100 * inertia.std / inertia.value:.1f} %"
-            if math.isfinite(inertia.std) else ""))
+        estimated.update(inertia_calibration(inertia, params, objective))
     return params, list(decoded)
+
+
+def inertia_calibration(estimate: FactorEstimate, params: EstimatorParams, objective: str) -> dict[str, tuple[float, str]]:
+    """The keys to write: ``vehicle.iz``, and ``ekf.yaw_inertia_uncertainty`` when it has a std.
+
+    The std relative to Iz, combined with the configured uncertainty, capped at the schema's 1.
+    """
+    return {"vehicle.iz": (estimate.value, estimate.format(objective)),
+            **held_uncertainty("ekf.yaw_inertia_uncertainty", estimate.std / estimate.value,
+                               params.config.options.yaw_inertia_uncertainty, 1.0, "the estimated Iz",
+                               lambda v: f"{100 * v:.2f} %")}
 
 
 def estimate_bag_yaw_inertia(epochs: Sequence[Any], params: EstimatorParams, backend: Backend, *, objective: str,

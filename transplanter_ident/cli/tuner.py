@@ -151,7 +151,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(0.95-1.05 x the configured) likewise, tune Q/R at it; writes it (with nll, and its std as "
                         "ekf.steering_scale_uncertainty) into OUT.yaml")
     parser.add_argument("--estimate-yaw-inertia", action="store_true", help="then search vehicle.iz (0.6-1.6 x the "
-                        "configured, m lf lr if 0) likewise, tune Q/R at it; writes it into OUT.yaml")
+                        "configured, m lf lr if 0) likewise; writes it (with nll, its std as ekf.yaw_inertia_uncertainty)")
     parser.add_argument("--tune-stiffness-noise", action="store_true",
                         help="also tune the stiffness random walk (q_Cf, q_Cr of ekf.process_noise); by default "
                              "only the physical noises (vy, r, psi and R) are tuned and the stiffness and offset "

@@ -81,6 +81,7 @@ class FilterOptions:
     saturation_memory: float = 300.0  # s, time constant of that measure
     delay_uncertainty: float = 0.0  # s, 1-sigma of the GNSS delay left out of gnss.delay: the std holds its bias
     steering_scale_uncertainty: float = 0.0  # relative 1-sigma of the steering gain left out of vehicle.steering_scale
+    yaw_inertia_uncertainty: float = 0.0  # relative 1-sigma of the yaw inertia left out of vehicle.iz
     speed_noise: bool = True  # the GNSS speed, the model's input, is noisy: its variance enters Q through dx/dvx
     noise_adaptation: bool = True  # R raised to what the innovations show (covariance matching), never lowered
     noise_memory: float = 60.0  # s, time constant of that measure
@@ -122,6 +123,7 @@ class FilterOptions:
                                             "max_identifiable_rel_std"), non_negative=("identifiability_min_steering",
                                                                                    "delay_uncertainty",
                                                                                    "steering_scale_uncertainty",
+                                                                                   "yaw_inertia_uncertainty",
                                                                                    "saturation_prior",
                                                                                    "max_tire_utilisation",
                                                                                    "relinearization_window"))

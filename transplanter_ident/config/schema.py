@@ -265,6 +265,8 @@ SCHEMA: tuple[Param, ...] = (
            "vehicle.steering_scale (tuner --estimate-steering-scale writes its estimate's): the reported Cf, Cr std "
            "hold the bias it causes (~5-8 % per % at 2 m/s; /diagnostics scale_sensitivity_per_percent); 0: off",
            0.0, 0.2),
+    _float("ekf.yaw_inertia_uncertainty", 0.0, "", "relative 1-sigma of the yaw inertia left after vehicle.iz (tuner "
+           "--estimate-yaw-inertia writes it): the Cf, Cr std hold the bias it causes (~0.8 % per %); 0: off", 0.0, 1.0),
     _bool("ekf.speed_noise", True, "the speed the model is driven with is the GNSS ground speed, as noisy as the "
           "velocity: the mean of an interval's two samples (each of R's velocity variance times the factor the "
           "innovations show), the first shared with the interval before; it enters P through the model's "

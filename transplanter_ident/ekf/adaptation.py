@@ -10,8 +10,9 @@
   standard deviations include it; :func:`propagate_delay_bias`: likewise per second of GNSS delay
   left out of ``gnss.delay`` (the std holds it times ``ekf.delay_uncertainty``);
   :func:`propagate_scale_bias`: per unit of steering-sensor gain left out of
-  ``vehicle.steering_scale`` (times ``ekf.steering_scale_uncertainty``; :func:`held_bias_variance`
-  sums what the std holds); :func:`score_signature` measures that delay, and how far the tires
+  ``vehicle.steering_scale`` (times ``ekf.steering_scale_uncertainty``), :func:`propagate_inertia_bias`
+  per unit of ln Iz left out of ``vehicle.iz`` (times ``ekf.yaw_inertia_uncertainty``;
+  :func:`held_bias_variance` sums what the std holds); :func:`score_signature` measures that delay, and how far the tires
   saturate, from the innovations;
   :func:`saturation_share` turns the latter into the correction of Cf, Cr and the bias the std keeps;
 * :func:`learn_noise_scales` / :func:`noise_scale`: R as the innovations show it (covariance
@@ -24,6 +25,8 @@ from __future__ import annotations
 import math
 
 from transplanter_ident.ekf.layout import (
+    B_DIRECT,
+    B_INERTIA,
     G_K0,
     G_K1,
     M_BIAS,
@@ -31,6 +34,7 @@ from transplanter_ident.ekf.layout import (
     M_DELAY_INFORMATION,
     M_DELAY_SCORE,
     M_DELAY_SETTLED,
+    M_INERTIA_BIAS,
     M_NOISE_SECOND,
     M_NOISE_SPAN_SECOND,
     M_NOISE_SPAN_VY,
@@ -43,6 +47,7 @@ from transplanter_ident.ekf.layout import (
     O_SLIP_R,
     S_DELAY_MEMORY,
     S_DELAY_UNCERTAINTY,
+    S_INERTIA_UNCERTAINTY,
     S_LINEAR_RANGE,
     S_MAX_LAT_ACC,
     S_MAX_NOISE_SCALE,
@@ -59,6 +64,7 @@ from transplanter_ident.ekf.layout import (
     VEH_LF,
     VEH_LR,
     VEH_MASS,
+    W_BIAS,
     W_F,
     W_GAIN,
     W_VEC,
@@ -149,13 +155,24 @@ def propagate_bias(memo, slot, n, nd, h1, antenna_x, updated, d_f, d_r, d_b, ws)
 
     Over an interval the true motion follows the parameters shifted by (d_f, d_r, d_b) (theta_f,
     theta_r, steering offset): the prediction misses F[:, theta] d (the filter's own Jacobian,
-    ws[W_F]), so b <- F b + F[:, theta] d; an update (gain K in ws[W_GAIN], zero rows where the step
-    held them) takes b <- (I - K H) b. Called once the step is accepted; returns H b before the update.
+    ws[W_F]) (:func:`carry_bias`). Returns H b before the update.
+    """
+    for i in range(nd):
+        ws[W_BIAS, B_DIRECT, i] = ws[W_F, i, nd] * d_f + ws[W_F, i, nd + 1] * d_r + ws[W_F, i, nd + 2] * d_b
+    return carry_bias(memo, slot, n, nd, h1, antenna_x, updated, B_DIRECT, ws)
+
+
+@inline_kernel
+def carry_bias(memo, slot, n, nd, h1, antenna_x, updated, direct, ws):
+    """B <- F b + g over the interval, g in ws[W_BIAS, direct] (the motion the prediction misses); then the update.
+
+    An update (gain K in ws[W_GAIN], zero rows where the step held them) takes b <- (I - K H) b.
+    Called once the step is accepted; returns H b before the update.
     """
     for i in range(n):
         acc = memo[slot + i]
         if i < nd:
-            acc = ws[W_F, i, nd] * d_f + ws[W_F, i, nd + 1] * d_r + ws[W_F, i, nd + 2] * d_b
+            acc = ws[W_BIAS, direct, i]
             for j in range(n):
                 acc += ws[W_F, i, j] * memo[slot + j]
         ws[W_VEC, V_BIAS, i] = acc
@@ -210,16 +227,30 @@ def propagate_scale_bias(memo, settings, n, nd, h1, antenna_x, updated, steering
 
 
 @inline_kernel
+def propagate_inertia_bias(memo, settings, n, nd, h1, antenna_x, updated, ws):
+    """The estimate's first-order bias per unit of ln Iz left out of ``vehicle.iz`` (memo M_INERTIA_BIAS).
+
+    Iz scales the yaw equation alone (paper eq. 1), which no shift of theta or the offset mimics: the
+    prediction misses d x_{k+1} / d ln Iz, which :func:`.prediction.make_prediction`'s
+    ``predict_inertia_gain`` left in ws[W_BIAS, B_INERTIA]. Only with ``ekf.yaw_inertia_uncertainty`` > 0.
+    """
+    if settings[S_INERTIA_UNCERTAINTY] > 0.0:
+        carry_bias(memo, M_INERTIA_BIAS, n, nd, h1, antenna_x, updated, B_INERTIA, ws)
+
+
+@inline_kernel
 def held_bias_variance(memo, settings, i, unpinned):
     """The variance that state i's std holds for the biases of the model's known errors.
 
-    The tire's (the share ``unpinned`` of it), the delay's and the steering gain's at their configured
-    1-sigma (``ekf.delay_uncertainty``, ``ekf.steering_scale_uncertainty``).
+    The tire's (the share ``unpinned`` of it), the delay's, the steering gain's and the yaw inertia's at
+    their configured 1-sigma (``ekf.delay_uncertainty``, ``ekf.steering_scale_uncertainty``,
+    ``ekf.yaw_inertia_uncertainty``).
     """
     tire = memo[M_BIAS + i]
     delay = memo[M_DELAY_BIAS + i] * settings[S_DELAY_UNCERTAINTY]
     scale = memo[M_SCALE_BIAS + i] * settings[S_SCALE_UNCERTAINTY]
-    return unpinned * tire * tire + delay * delay + scale * scale
+    inertia = memo[M_INERTIA_BIAS + i] * settings[S_INERTIA_UNCERTAINTY]
+    return unpinned * tire * tire + delay * delay + scale * scale + inertia * inertia
 
 
 @inline_kernel
@@ -229,6 +260,7 @@ def forget_motion_bias(memo, nd):
         memo[M_BIAS + i] = 0.0
         memo[M_DELAY_BIAS + i] = 0.0
         memo[M_SCALE_BIAS + i] = 0.0
+        memo[M_INERTIA_BIAS + i] = 0.0
 
 
 @inline_kernel

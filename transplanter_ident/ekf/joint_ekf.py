@@ -48,6 +48,7 @@ from transplanter_ident.ekf.layout import (
     S_GATE,
     S_HEADING,
     S_HIGH,
+    S_INERTIA_UNCERTAINTY,
     S_LINEAR_RANGE,
     S_LOG,
     S_LOW,
@@ -147,6 +148,7 @@ class FilterArrays:
         settings[S_MAX_NOISE_SCALE] = options.max_noise_scale
         settings[S_DELAY_UNCERTAINTY] = options.delay_uncertainty
         settings[S_SCALE_UNCERTAINTY] = options.steering_scale_uncertainty
+        settings[S_INERTIA_UNCERTAINTY] = options.yaw_inertia_uncertainty
         settings[S_SPEED_NOISE] = 1.0 if options.speed_noise else 0.0
         settings[S_DELAY_MEMORY] = options.identifiability_memory
         q, p0 = _state_diagonals(noise, options, config.vehicle.relaxation_length > 0.0)

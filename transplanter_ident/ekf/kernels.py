@@ -42,6 +42,7 @@ from transplanter_ident.ekf.adaptation import (
     learn_noise_scales,
     noise_scale,
     propagate_delay_bias,
+    propagate_inertia_bias,
     propagate_scale_bias,
     propagate_tire_bias,
     saturation_share,
@@ -161,7 +162,8 @@ def make_kernels(heading, lagged=False):
     h1 = X_PSI if heading else X_R  # second measured state
     propagate_covariance, add_speed_noise, joseph_update, keep_speed_cross = make_update(n, nd, h1)
 
-    reset_motion, stiffness, predict_n, carry_lags, add_lag_noise = make_prediction(heading, lagged)
+    prediction = make_prediction(heading, lagged)
+    reset_motion, stiffness, predict_n, carry_lags, add_lag_noise, predict_inertia_gain = prediction
 
     @called_kernel
     def write_outputs(x, p, memo, settings, status, r_model, vy_model, out):
@@ -281,7 +283,9 @@ def make_kernels(heading, lagged=False):
             if memo[M_LAG_SPEED] > 0.0:
                 carry_lags(x, p, model, memo[M_LAG_SPEED], speed, vehicle)
             memo[M_LAG_SPEED] = speed
+        predict_inertia_gain(x, vehicle, settings, dt, speed, steering, steering_rate, relaxation, ws, False)
         predict_n(x, model, vehicle, settings, dt, speed, steering, steering_rate, relaxation, ws)
+        predict_inertia_gain(x, vehicle, settings, dt, speed, steering, steering_rate, relaxation, ws, True)
         r_model = (model[X_PSI] - psi_model_before) / dt if heading else model[X_R]
         vy_model = model[X_VY]
         adapting = t <= memo[M_ADAPT_UNTIL]
@@ -346,6 +350,7 @@ def make_kernels(heading, lagged=False):
                                            out[O_SLIP_R], cf_now, cr_now, log_state, ws)
         g0, g1 = propagate_delay_bias(memo, n, nd, h1, antenna_x, updated, steering_rate, ws)
         propagate_scale_bias(memo, settings, n, nd, h1, antenna_x, updated, steering, ws)
+        propagate_inertia_bias(memo, settings, n, nd, h1, antenna_x, updated, ws)
         keep_speed_cross(memo, speed_variance, antenna_x, updated, ws)
         if updated:
             learn_noise_scales(memo, settings, dt, e0, e1, s00 - r0, s11 - r1, r0, r1, r_noise[Z_VY],

@@ -50,7 +50,8 @@ S_SCALE_UNCERTAINTY = 35  # relative 1-sigma of the steering sensor's gain left 
 S_SPEED_NOISE = 36  # 1: the speed input's noise (R's velocity variance per sample) enters P through dx/dvx
 S_MAX_UTILISATION = 37  # the linear range's force limit, a fraction of mu Fz at min_friction (adaptation.py)
 S_SHIFT, S_SHIFT_THRESHOLD = 38, 39  # the directional change test's shift (in std) and alarm level (adaptation.py)
-N_SETTINGS = 40
+S_INERTIA_UNCERTAINTY = 40  # relative 1-sigma of the yaw inertia left out of vehicle.iz (adaptation.propagate_inertia_bias)
+N_SETTINGS = 41
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6
@@ -89,7 +90,9 @@ M_SPEED_CROSS = M_LAG_SPEED + 1
 M_SHIFT = M_SPEED_CROSS + MAX_STATES
 N_SHIFT = 4
 M_SHIFT_POWER, M_SHIFT_LAG, M_SHIFT_LAST = M_SHIFT + N_SHIFT, M_SHIFT + N_SHIFT + 2, M_SHIFT + N_SHIFT + 4
-N_MEMO = M_SHIFT_LAST + 2
+#: memo[M_INERTIA_BIAS + i]: the bias of state i per unit of ln Iz left out of vehicle.iz (adaptation.py)
+M_INERTIA_BIAS = M_SHIFT_LAST + 2
+N_MEMO = M_INERTIA_BIAS + MAX_STATES
 
 # the open-loop model's state: the filter's motion states and slip lags, [vy, r, psi, d_f, d_r] or [vy, r, d_f, d_r]
 N_MODEL = N_MOTION_HEADING + N_LAG
@@ -124,7 +127,9 @@ W_T, W_DT_F, W_DT_R, W_NT, W_NDT_F, W_NDT_R = 6, 7, 8, 9, 10, 11
 W_F, W_TMP, W_GAIN, W_BACKUP_P, W_VEC = 12, 13, 14, 15, 16
 # ... and the derivatives with respect to the speed vx (model.py; the speed's noise in Q, kernels.py)
 W_DE_V, W_DM_V, W_DT_V, W_NDT_V = 17, 18, 19, 20
-WORK_SLOTS = 21
+# ... and the model errors' biases (adaptation.py): rows B_* of ws[W_BIAS]
+W_BIAS = 21
+WORK_SLOTS = 22
 WORK_SIZE = MAX_STATES
 # rows of ws[W_VEC]
 V_BACKUP_X, V_BACKUP_MODEL, V_NEW_X, V_NEW_MODEL, V_BIAS = 0, 1, 2, 3, 4
@@ -133,6 +138,9 @@ V_SPEED_CROSS = 6  # F times memo[M_SPEED_CROSS:] (update.add_speed_noise)
 V_BACKUP_CHANGE = 7  # the change tests' sums before the step, memo[M_CUSUM] then memo[M_SHIFT:] (recovery.py)
 # rows of ws[W_GAIN]
 G_K0, G_K1, G_HP0, G_HP1 = 0, 1, 2, 3
+# rows of ws[W_BIAS]: what a model error adds to the predicted motion over the interval (adaptation.carry_bias),
+# and the prediction with Iz x (1 + INERTIA_STEP), then d x_{k+1} / d ln Iz (prediction.predict_inertia_gain)
+B_DIRECT, B_INERTIA = 0, 1
 
 
 class StepStatus(enum.IntEnum):

@@ -3,7 +3,7 @@
 :func:`make_prediction` compiles, for one state size, the three helpers of the filter step
 (:mod:`.kernels`) that know what the motion states are: their reset from a measurement, the
 stiffness a state holds, and the prediction through :mod:`.model`'s discretisation, with its
-Jacobian F = df/dx (eq. 13) and df/dvx. With relaxing tires the slip lags d_f, d_r follow the motion
+Jacobian F = df/dx (eq. 13) and df/dvx, and (``predict_inertia_gain``) df/d ln Iz. With relaxing tires the slip lags d_f, d_r follow the motion
 states (layout.N_LAG).
 """
 
@@ -12,12 +12,14 @@ from __future__ import annotations
 import math
 
 from transplanter_ident.ekf.layout import (
+    B_INERTIA,
     EULER,
     HEADING_STATES,
     N_LAG,
     N_MOTION_HEADING,
     N_MOTION_YAW_RATE,
     S_ANTENNA_X,
+    S_INERTIA_UNCERTAINTY,
     S_LOG,
     S_METHOD,
     S_P0_PSI,
@@ -27,8 +29,10 @@ from transplanter_ident.ekf.layout import (
     V_NEW_MODEL,
     V_NEW_X,
     V_SPEED_GAIN,
+    VEH_IZ,
     VEH_LF,
     VEH_LR,
+    W_BIAS,
     W_DE_F,
     W_DE_R,
     W_DE_V,
@@ -48,9 +52,15 @@ from transplanter_ident.ekf.model import (
 )
 from transplanter_ident.jit import inline_kernel
 
+#: the relative step of Iz in the difference quotient of ``predict_inertia_gain``
+INERTIA_STEP = 1.0e-4
+
 
 def make_prediction(heading, lagged):  # noqa: ANN001, ANN201 - numba closures
-    """(reset_motion, stiffness, predict_n, carry_lags, add_lag_noise) for one measurement mode, with or without lags."""
+    """The step's prediction helpers for one measurement mode, with or without lags.
+
+    (reset_motion, stiffness, predict_n, carry_lags, add_lag_noise, predict_inertia_gain).
+    """
     lag = N_LAG if lagged else 0
     n = (HEADING_STATES if heading else YAW_RATE_STATES) + lag
     nd = (N_MOTION_HEADING if heading else N_MOTION_YAW_RATE) + lag  # motion states and slip lags
@@ -173,4 +183,34 @@ def make_prediction(heading, lagged):  # noqa: ANN001, ANN201 - numba closures
             for b in range(lag):
                 p[first + a, first + b] += g_vy[a] * g_vy[b] * q_vy + g_r[a] * g_r[b] * q_r
 
-    return reset_motion, stiffness, predict_n, carry_lags, add_lag_noise
+    @inline_kernel
+    def predict_inertia_gain(x, vehicle, settings, dt, speed, steering, steering_rate, relaxation, ws, after):
+        """D x_{k+1} / d ln Iz of the motion states, by a difference quotient, in ws[W_BIAS, B_INERTIA].
+
+        Call it with ``after`` False before predict_n (the motion predicted with Iz x (1 + INERTIA_STEP);
+        it overwrites the discretisation predict_n then redoes), and with ``after`` True once predict_n has
+        put the prediction in x. Only with ``ekf.yaw_inertia_uncertainty`` > 0.
+        """
+        if not settings[S_INERTIA_UNCERTAINTY] > 0.0:
+            return
+        if after:
+            for i in range(nd):
+                ws[W_BIAS, B_INERTIA, i] = (ws[W_BIAS, B_INERTIA, i] - x[i]) / math.log1p(INERTIA_STEP)
+            return
+        iz = vehicle[VEH_IZ]
+        vehicle[VEH_IZ] = iz * (1.0 + INERTIA_STEP)  # no allocation in the kernels: restored below
+        cf, dcf = stiffness(x, settings, 0)
+        cr, dcr = stiffness(x, settings, 1)
+        method = int(settings[S_METHOD])
+        discretize_n(cf, cr, dcf, dcr, speed, dt, vehicle, method, False, relaxation, ws)
+        vehicle[VEH_IZ] = iz
+        level = steering - x[nb]
+        if method != EULER:
+            level -= 0.5 * dt * steering_rate
+        for i in range(nd):
+            acc = ws[W_E, i, nd] * level + ws[W_E, i, nd + 1] * steering_rate
+            for j in range(nd):
+                acc += ws[W_E, i, j] * x[j]
+            ws[W_BIAS, B_INERTIA, i] = acc
+
+    return reset_motion, stiffness, predict_n, carry_lags, add_lag_noise, predict_inertia_gain

@@ -7,8 +7,9 @@ fixes C / m, the yaw equation C l / Iz. So, like ``vehicle.steering_scale`` (:mo
 a one-dimensional search of the tuner's objective at the starting Q/R over factors on the
 configured Iz (0.6-1.6, in 5 % then 0.5 % steps; :mod:`.factor_search`), the filter warm-started at
 each. On a 2-minute identification drive (2 m/s, +-15 deg) the NLL pins Iz to about +-5 % (1-sigma),
-and Cf, Cr move by about 0.8 % per 1 % of Iz: tune on several bags. The std is printed and written
-as a comment; the estimator's band does not hold it.
+and Cf, Cr move by about 0.6-0.9 % per 1 % of Iz: tune on several bags. With ``nll`` the tuner
+writes the std as ``ekf.yaw_inertia_uncertainty``, and the estimator's band holds the bias it may
+leave (:func:`transplanter_ident.ekf.adaptation.propagate_inertia_bias`).
 """
 
 from __future__ import annotations
