@@ -109,6 +109,7 @@ def test_cli_writes_the_scale_and_replay_loads_it(tmp_path: Path, capsys) -> Non
                        "--no-leave-one-out"]) == 0
     printed = capsys.readouterr()
     assert "estimated vehicle.steering_scale:" in printed.out and "# estimated vehicle.steering_scale:" in out.read_text()
+    assert "add --estimate-yaw-inertia" in printed.err  # vehicle.iz is m lf lr here
     tuned = load_params([str(out)]).config
     assert abs(tuned.vehicle.steering_scale * 1.02 - 1.0) <= TOLERANCE
     # its std (relative) goes into the band: ekf.steering_scale_uncertainty, and the error is within 3 of it

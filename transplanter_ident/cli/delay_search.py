@@ -188,6 +188,9 @@ def calibrate_vehicle(decoded: Sequence[Any], params: EstimatorParams, backend: 
     Adds the keys to write to ``estimated``; returns the parameters and the bags' epochs at the estimates.
     """
     inertia = None
+    if steering_scale and not yaw_inertia and params.config.vehicle.iz <= 0.0:
+        print("tuner: note: the steering scale is confounded with the yaw inertia, and vehicle.iz is m lf lr (paper "
+              "eq. 5, a rule of thumb): add --estimate-yaw-inertia to search both", file=sys.stderr, flush=True)
     if steering_scale:
         scale, inertia, params, decoded = estimate_bag_steering_scale(
             decoded, params, backend, objective=objective, tune_stiffness_noise=tune_stiffness_noise, cache=cache,
