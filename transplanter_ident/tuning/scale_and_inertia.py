@@ -1,7 +1,8 @@
 """``vehicle.steering_scale`` and ``vehicle.iz`` found together: the two are confounded.
 
-A steering sensor reading high and a yaw inertia too small both make the measured yaw response
-look larger than the model's, so the tuner's objective has a tilted ridge in (scale, Iz): searched
+A steering sensor reading high (the input of paper eq. 1) and a yaw inertia too small (Iz of its yaw
+equation) both make the measured yaw response look larger than the model's, so the tuner's
+objective (eq. 21's mean |innovation| or the innovation NLL) has a tilted ridge in (scale, Iz): searched
 one after the other (:mod:`.steering_scale`, then :mod:`.yaw_inertia`), a sensor 2 % high on a
 vehicle whose Iz is 1.2 x m lf lr gave the scale 1.002 +- 0.0017 (truth 0.980) and Iz 1.005 x, and
 Cf 26 % low, valid. Asked for both, the tuner searches them jointly: a coarse grid of factors
