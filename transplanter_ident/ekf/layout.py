@@ -141,6 +141,7 @@ G_K0, G_K1, G_HP0, G_HP1 = 0, 1, 2, 3
 # rows of ws[W_BIAS]: what a model error adds to the predicted motion over the interval (adaptation.carry_bias),
 # and the prediction with Iz x (1 + INERTIA_STEP), then d x_{k+1} / d ln Iz (prediction.predict_inertia_gain)
 B_DIRECT, B_INERTIA = 0, 1
+B_VEHICLE = 2  # the vehicle constants with Iz x (1 + INERTIA_STEP) (prediction.predict_inertia_gain)
 
 
 class StepStatus(enum.IntEnum):

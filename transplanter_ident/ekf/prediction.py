@@ -13,11 +13,13 @@ import math
 
 from transplanter_ident.ekf.layout import (
     B_INERTIA,
+    B_VEHICLE,
     EULER,
     HEADING_STATES,
     N_LAG,
     N_MOTION_HEADING,
     N_MOTION_YAW_RATE,
+    N_VEHICLE,
     S_ANTENNA_X,
     S_INERTIA_UNCERTAINTY,
     S_LOG,
@@ -197,13 +199,14 @@ def make_prediction(heading, lagged):  # noqa: ANN001, ANN201 - numba closures
             for i in range(nd):
                 ws[W_BIAS, B_INERTIA, i] = (ws[W_BIAS, B_INERTIA, i] - x[i]) / math.log1p(INERTIA_STEP)
             return
-        iz = vehicle[VEH_IZ]
-        vehicle[VEH_IZ] = iz * (1.0 + INERTIA_STEP)  # no allocation in the kernels: restored below
+        perturbed = ws[W_BIAS, B_VEHICLE]  # a row of the work buffer (the kernels do not allocate)
+        for i in range(N_VEHICLE):
+            perturbed[i] = vehicle[i]
+        perturbed[VEH_IZ] *= 1.0 + INERTIA_STEP
         cf, dcf = stiffness(x, settings, 0)
         cr, dcr = stiffness(x, settings, 1)
         method = int(settings[S_METHOD])
-        discretize_n(cf, cr, dcf, dcr, speed, dt, vehicle, method, False, relaxation, ws)
-        vehicle[VEH_IZ] = iz
+        discretize_n(cf, cr, dcf, dcr, speed, dt, perturbed, method, False, relaxation, ws)
         level = steering - x[nb]
         if method != EULER:
             level -= 0.5 * dt * steering_rate
