@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -83,3 +84,10 @@ def run_command(name: str, *args: object) -> subprocess.CompletedProcess:
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(root), env.get("PYTHONPATH", "")]))
     return subprocess.run(command(name) + [str(a) for a in args], capture_output=True, text=True, timeout=600,
                           env=env, cwd=root)
+
+
+def final_errors(text: str) -> tuple[float, float]:
+    """The final Cf, Cr errors (%) that ``replay`` prints against a simulated bag's truth."""
+    match = re.search(r"final Cf ([-+\d.]+) %, Cr ([-+\d.]+) %", text)
+    assert match, text
+    return float(match.group(1)), float(match.group(2))

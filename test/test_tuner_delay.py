@@ -14,13 +14,12 @@ from __future__ import annotations
 
 import functools
 import math
-import re
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import sim_samples
+from helpers import final_errors, sim_samples
 
 from transplanter_ident.cli import replay, tuner
 from transplanter_ident.config.params_file import EstimatorParams, load_params
@@ -120,11 +119,6 @@ def late_bag(tmp_path_factory) -> Path:  # noqa: ANN001
     return path
 
 
-def _final_errors(text: str) -> tuple[float, float]:
-    match = re.search(r"final Cf ([-+\d.]+) %, Cr ([-+\d.]+) %", text)
-    assert match, text
-    return float(match.group(1)), float(match.group(2))
-
 
 def test_cli_writes_the_delay_and_replay_loads_it(late_bag, tmp_path, capsys) -> None:  # noqa: ANN001
     out, cache = tmp_path / "tuned.yaml", tmp_path / "cache"
@@ -144,9 +138,9 @@ def test_cli_writes_the_delay_and_replay_loads_it(late_bag, tmp_path, capsys) ->
     assert "kept by design" in out.read_text()
 
     assert replay.main([str(late_bag)]) == 0
-    unset = _final_errors(capsys.readouterr().out)
+    unset = final_errors(capsys.readouterr().out)
     assert replay.main([str(late_bag), "--params-file", str(out)]) == 0
-    with_delay = _final_errors(capsys.readouterr().out)
+    with_delay = final_errors(capsys.readouterr().out)
     assert max(map(abs, with_delay)) < 0.5 * min(map(abs, unset)), (with_delay, unset)
 
     # the epochs at the estimated delay were cached under it: tuning with the YAML skips decoding

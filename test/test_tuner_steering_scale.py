@@ -12,14 +12,13 @@ required within 0.5 %. On +-10 deg multisine drives (less excitation) +0.52 % (s
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 from drives import sine_drive
-from helpers import sim_samples
+from helpers import final_errors, sim_samples
 from test_validity import epochs_of
 
 from transplanter_ident.cli import replay, tuner
@@ -89,11 +88,6 @@ def test_the_scale_is_found_on_three_drives(sensor_gain: float, drive: dict, tol
     assert 0.0003 <= estimate.std <= 0.01 and abs(error) <= 3.0 * estimate.std, (error, estimate.format("nll"))
 
 
-def _final_errors(text: str) -> tuple[float, float]:
-    match = re.search(r"final Cf ([-+\d.]+) %, Cr ([-+\d.]+) %", text)
-    assert match, text
-    return float(match.group(1)), float(match.group(2))
-
 
 def test_cli_writes_the_scale_and_replay_loads_it(tmp_path: Path, capsys) -> None:  # noqa: ANN001
     """Two drives with the sensor 2 % high: OUT.yaml holds the scale and its std, and replay with it is right."""
@@ -118,9 +112,9 @@ def test_cli_writes_the_scale_and_replay_loads_it(tmp_path: Path, capsys) -> Non
     assert abs(tuned.vehicle.steering_scale * 1.02 - 1.0) <= 3.0 * uncertainty
 
     assert replay.main([str(bags[0])]) == 0
-    unset = _final_errors(capsys.readouterr().out)
+    unset = final_errors(capsys.readouterr().out)
     assert replay.main([str(bags[0]), "--params-file", str(out)]) == 0
-    calibrated = _final_errors(capsys.readouterr().out)
+    calibrated = final_errors(capsys.readouterr().out)
     assert max(map(abs, calibrated)) < 0.5 * max(map(abs, unset)), (calibrated, unset)
 
 

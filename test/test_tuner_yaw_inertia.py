@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import functools
 import math
-import re
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 from drives import sine_drive
+from helpers import final_errors
 from test_validity import epochs_of
 
 from transplanter_ident.cli import replay, tuner
@@ -60,11 +60,6 @@ def test_the_yaw_inertia_is_found_on_three_drives(factor: float) -> None:
     assert 0.005 <= relative_std <= 0.06 and abs(error) <= 3.0 * relative_std, (error, estimate.format("nll"))
 
 
-def _final_errors(text: str) -> tuple[float, float]:
-    match = re.search(r"final Cf ([-+\d.]+) %, Cr ([-+\d.]+) %", text)
-    assert match, text
-    return float(match.group(1)), float(match.group(2))
-
 
 def test_cli_writes_the_yaw_inertia_and_replay_with_it_is_right(tmp_path: Path, capsys) -> None:  # noqa: ANN001
     """Two drives of a vehicle whose Iz is 1.2 x m lf lr: OUT.yaml holds it, and a third drive replayed with it is right."""
@@ -89,9 +84,9 @@ def test_cli_writes_the_yaw_inertia_and_replay_with_it_is_right(tmp_path: Path, 
     assert abs(error) <= 3.0 * uncertainty
 
     assert replay.main([str(paths[2])]) == 0
-    unset = _final_errors(capsys.readouterr().out)
+    unset = final_errors(capsys.readouterr().out)
     assert replay.main([str(paths[2]), "--params-file", str(out)]) == 0
-    calibrated = _final_errors(capsys.readouterr().out)
+    calibrated = final_errors(capsys.readouterr().out)
     assert max(map(abs, calibrated)) < 0.5 * max(map(abs, unset)), (calibrated, unset)
 
 

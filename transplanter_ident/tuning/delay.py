@@ -184,7 +184,8 @@ def estimate_delay(scores: BagScores, objective: str, low: float = DELAY_RANGE[0
     return replace(estimate, std=profile_std(estimate.points, estimate.delay, epochs[estimate.delay]))
 
 
-def _grid(low: float, high: float, step: float) -> list[float]:
+def grid_points(low: float, high: float, step: float) -> list[float]:
+    """low, low + step, ..., high (the step rounded to fit), to 9 decimals."""
     count = max(1, round((high - low) / step))
     return [float(v) for v in np.round(np.linspace(low, high, count + 1), 9)]
 
@@ -223,8 +224,8 @@ def grid_search(objective: DelayObjective, low: float, high: float, coarse: floa
     def order(d: float) -> tuple[float, float, float]:
         return seen[d], abs(d - centre), d
 
-    evaluate(_grid(low, high, coarse))
+    evaluate(grid_points(low, high, coarse))
     best = min(seen, key=order)
-    evaluate(_grid(max(low, best - coarse), min(high, best + coarse), fine))
+    evaluate(grid_points(max(low, best - coarse), min(high, best + coarse), fine))
     best = min(seen, key=order)
     return best, seen[best], tuple(sorted(seen.items()))

@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 from transplanter_ident.config.parameters import EstimatorConfig
 from transplanter_ident.epochs.epoch import EpochArrays
@@ -22,8 +23,9 @@ from transplanter_ident.tuning.delay import DelayObjective, at_range_edge, grid_
 
 #: (function, argument tuples) -> results in order: a backend's ``map`` (tuning.parallel), or here
 TaskMap = Callable[[Callable[..., tuple[float, int]], list[tuple]], list[tuple[float, int]]]
-#: (one bag's epochs, config, factor, objective, tune_stiffness_noise) -> (objective at the starting Q/R, epochs)
-FactorScore = Callable[[EpochArrays, EstimatorConfig, float, str, bool], tuple[float, int]]
+#: (one bag's epochs, config, factor (or a pair of them), objective, tune_stiffness_noise) -> (objective at the
+#: starting Q/R, epochs)
+FactorScore = Callable[[EpochArrays, EstimatorConfig, Any, str, bool], tuple[float, int]]
 
 
 @dataclass(frozen=True)
@@ -84,8 +86,8 @@ def with_factor_std(estimate: FactorEstimate, epochs: int, window: float, step: 
 
 def pooled_factor_objective(score: FactorScore, bags: Sequence[EpochArrays], config: EstimatorConfig,
                             objective: str, tune_stiffness_noise: bool = False,
-                            run: TaskMap | None = None) -> DelayObjective:
-    """The objective of a batch of factors, pooled over ``bags``; every (factor, bag) a task of ``run``."""
+                            run: TaskMap | None = None) -> Callable[[Sequence[Any]], list[float]]:
+    """The objective of a batch of factors (or pairs), pooled over ``bags``; every (factor, bag) a task of ``run``."""
     run = run or (lambda fn, tasks: [fn(*task) for task in tasks])
 
     def of(factors: Sequence[float]) -> list[float]:

@@ -24,8 +24,8 @@ import numpy as np
 
 from transplanter_ident.config.parameters import EstimatorConfig
 from transplanter_ident.epochs.epoch import EpochArrays
-from transplanter_ident.tuning.delay import at_range_edge, pooled
-from transplanter_ident.tuning.factor_search import FactorEstimate, TaskMap
+from transplanter_ident.tuning.delay import at_range_edge, grid_points
+from transplanter_ident.tuning.factor_search import FactorEstimate, TaskMap, pooled_factor_objective
 from transplanter_ident.tuning.steering_scale import EDGE_ADVICE as SCALE_ADVICE
 from transplanter_ident.tuning.steering_scale import scale_objective
 from transplanter_ident.tuning.yaw_inertia import EDGE_ADVICE as INERTIA_ADVICE
@@ -54,18 +54,7 @@ def pooled_pair_objective(bags: Sequence[EpochArrays], config: EstimatorConfig, 
                           tune_stiffness_noise: bool = False,
                           run: TaskMap | None = None) -> Callable[[Sequence[Pair]], list[float]]:
     """The objective of a batch of pairs, pooled over ``bags``; every (pair, bag) a task of ``run``."""
-    run = run or (lambda fn, tasks: [fn(*task) for task in tasks])
-
-    def of(pairs: Sequence[Pair]) -> list[float]:
-        tasks = [(e, config, p, objective, tune_stiffness_noise) for p in pairs for e in bags]
-        values = run(pair_objective, tasks)
-        return [pooled(values[i * len(bags):(i + 1) * len(bags)]) for i in range(len(pairs))]
-
-    return of
-
-
-def _axis(low: float, high: float, step: float) -> list[float]:
-    return [float(v) for v in np.round(np.linspace(low, high, max(1, round((high - low) / step)) + 1), 9)]
+    return pooled_factor_objective(pair_objective, bags, config, objective, tune_stiffness_noise, run)
 
 
 def grid_search_pair(objective: Callable[[Sequence[Pair]], Sequence[float]], scale: tuple = SCALE_GRID,
@@ -82,9 +71,9 @@ def grid_search_pair(objective: Callable[[Sequence[Pair]], Sequence[float]], sca
             seen.update((p, float(v) if math.isfinite(v) else math.inf) for p, v in zip(todo, objective(todo), strict=True))
         return min(seen, key=lambda p: (seen[p], abs(p[0] - 1.0) + abs(p[1] - 1.0), p))
 
-    best = evaluate(list(itertools.product(_axis(*scale[:3]), _axis(*inertia[:3]))))
+    best = evaluate(list(itertools.product(grid_points(*scale[:3]), grid_points(*inertia[:3]))))
     window = [(max(lo, b - c), min(hi, b + c), f) for (lo, hi, c, f), b in ((scale, best[0]), (inertia, best[1]))]
-    best = evaluate(list(itertools.product(*(_axis(*w) for w in window))))
+    best = evaluate(list(itertools.product(*(grid_points(*w) for w in window))))
     return best, seen[best], seen
 
 
