@@ -93,39 +93,68 @@ def test_cli_writes_the_yaw_inertia_and_replay_with_it_is_right(tmp_path: Path, 
 # --------------------------------------------------------------------------- with the steering scale: jointly
 
 
-def test_the_joint_search_finds_a_tilted_minimum_and_its_covariance() -> None:
-    """A quadratic NLL with a ridge (correlation -0.9) between the scale and Iz factors: both found, both std exact."""
+def test_the_joint_search_is_eq21s_minimum_with_the_nlls_covariance() -> None:
+    """A ridge (correlation -0.9) between the scale and Iz factors: the estimate is eq. 21's minimum, its std the NLL's.
+
+    The NLL here leans along the ridge (its minimum 2 of its std off), as the drives' NLL does; eq. 21's
+    minimum is the truth. Both found, both std exact (times STD_INFLATION).
+    """
     from transplanter_ident.tuning.scale_and_inertia import (
         INERTIA_GRID,
-        RIDGE_INFLATION,
         SCALE_GRID,
+        STD_INFLATION,
         search_scale_and_inertia,
     )
 
     truth, sigma, rho, epochs = (0.981, 1.17), (0.004, 0.03), -0.9, 1000
+    lean = np.array([2.0 * sigma[0], -2.0 * sigma[1]])
     cov = np.array([[sigma[0] ** 2, rho * sigma[0] * sigma[1]], [rho * sigma[0] * sigma[1], sigma[1] ** 2]])
     information = np.linalg.inv(cov)
 
-    def nll(pairs: list[tuple[float, float]]) -> list[float]:
-        d = np.array(pairs) - truth
+    def quadratic(centre: np.ndarray, pairs: list[tuple[float, float]]) -> list[float]:
+        d = np.array(pairs) - centre
         return list(0.5 * np.einsum("ij,jk,ik->i", d, information, d) / epochs)
 
-    scale, inertia = search_scale_and_inertia(nll, (1.0, 200.0), epochs)
+    def mae(pairs: list[tuple[float, float]]) -> list[float]:
+        return quadratic(np.array(truth), pairs)
+
+    def nll(pairs: list[tuple[float, float]]) -> list[float]:
+        return quadratic(np.array(truth) + lean, pairs)
+
+    scale, inertia = search_scale_and_inertia(mae, (1.0, 200.0), nll, epochs)
     assert scale.value == pytest.approx(truth[0], abs=SCALE_GRID[3]) and inertia.value == pytest.approx(
         200.0 * truth[1], abs=200.0 * INERTIA_GRID[3])
     rounding = (SCALE_GRID[3] ** 2 / 12.0, INERTIA_GRID[3] ** 2 / 12.0)
-    widened = RIDGE_INFLATION  # what the drives' NLL overstates along the ridge (tuning/scale_and_inertia.py)
-    assert scale.std == pytest.approx(widened * math.sqrt(sigma[0] ** 2 + rounding[0]), rel=1e-6)
-    assert inertia.std == pytest.approx(widened * 200.0 * math.sqrt(sigma[1] ** 2 + rounding[1]), rel=1e-6)
+    assert scale.std == pytest.approx(STD_INFLATION * math.sqrt(sigma[0] ** 2 + rounding[0]), rel=1e-6)
+    assert inertia.std == pytest.approx(STD_INFLATION * 200.0 * math.sqrt(sigma[1] ** 2 + rounding[1]), rel=1e-6)
+    located_only = search_scale_and_inertia(mae, (1.0, 200.0))
+    assert [e.value for e in located_only] == [scale.value, inertia.value]
+    assert all(math.isnan(e.std) for e in located_only)
     # one after the other, the scale at the configured Iz is off the truth by the ridge's tilt, and narrow
     from transplanter_ident.tuning.steering_scale import search_steering_scale
 
-    alone = search_steering_scale(lambda factors: nll([(f, 1.0) for f in factors]), 1.0)
+    alone = search_steering_scale(lambda factors: mae([(f, 1.0) for f in factors]), 1.0)
     assert abs(alone.value - truth[0]) > 5 * SCALE_GRID[3]
 
 
+def test_the_joint_search_says_when_the_nll_ends_at_an_edge() -> None:
+    """The NLL's minimum beyond the Iz range: its surface cannot give that std, which is +inf then."""
+    from transplanter_ident.tuning.scale_and_inertia import search_scale_and_inertia
+
+    def bowl(centre: tuple[float, float]):  # noqa: ANN202
+        return lambda pairs: [((a - centre[0]) / 0.004) ** 2 + ((b - centre[1]) / 0.03) ** 2 for a, b in pairs]
+
+    scale, inertia = search_scale_and_inertia(bowl((1.0, 1.1)), (1.0, 200.0), bowl((1.0, 1.9)), 1000)
+    assert inertia.value == pytest.approx(220.0) and inertia.std == math.inf and not inertia.at_edge
+    assert "+- inf (the drives do not pin it" in inertia.format("mae") and math.isfinite(scale.std)
+
+
 def test_cli_searches_the_scale_and_the_yaw_inertia_jointly(tmp_path: Path, capsys) -> None:  # noqa: ANN001
-    """A sensor 2 % high on a vehicle whose Iz is 1.2 x m lf lr: both found (one after the other, neither is)."""
+    """A sensor 2 % high on a vehicle whose Iz is 1.2 x m lf lr: both found (one after the other, neither is).
+
+    Tolerances: scale within 1 %, Iz within 10 % (over 30 sets of three drives the median errors were 0.4 % and
+    5.7 %, bench/joint_calibration_figures.py; measured here -0.5 % and +3.1 %), each within 3 of its written std.
+    """
     from transplanter_ident.bags import write_sim_bag
 
     paths = []
@@ -140,6 +169,6 @@ def test_cli_searches_the_scale_and_the_yaw_inertia_jointly(tmp_path: Path, caps
     tuned = load_params([str(out)]).config
     scale_error = tuned.vehicle.steering_scale * 1.02 - 1.0
     inertia_error = tuned.vehicle.iz / (1.2 * VEHICLE.yaw_inertia) - 1.0
-    assert abs(scale_error) <= 0.005 and abs(inertia_error) <= 2 * TOLERANCE, (scale_error, inertia_error)
+    assert abs(scale_error) <= 0.01 and abs(inertia_error) <= 0.10, (scale_error, inertia_error)
     assert abs(scale_error) <= 3.0 * tuned.options.steering_scale_uncertainty
     assert abs(inertia_error) <= 3.0 * tuned.options.yaw_inertia_uncertainty

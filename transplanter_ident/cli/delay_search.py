@@ -24,6 +24,7 @@ std goes into ``ekf.steering_scale_uncertainty`` (:func:`scale_calibration`).
 
 from __future__ import annotations
 
+import functools
 import math
 import sys
 from collections.abc import Callable, Sequence
@@ -44,7 +45,11 @@ from transplanter_ident.tuning.delay import (
 )
 from transplanter_ident.tuning.factor_search import FactorEstimate
 from transplanter_ident.tuning.parallel import Backend
-from transplanter_ident.tuning.scale_and_inertia import pooled_pair_objective, search_scale_and_inertia
+from transplanter_ident.tuning.scale_and_inertia import (
+    LOCATING_OBJECTIVE,
+    pooled_pair_objective,
+    search_scale_and_inertia,
+)
 from transplanter_ident.tuning.steering_scale import (
     pooled_scale_objective,
     scaled_epochs,
@@ -163,17 +168,19 @@ def estimate_bag_steering_scale(decoded: Sequence[Any], params: EstimatorParams,
     count = sum(len(e) for e in epochs) if objective == "nll" else None  # a likelihood: its curvature is the information
     inertia = None
     if with_inertia:
-        estimate, inertia = search_scale_and_inertia(
-            pooled_pair_objective(epochs, params.config, objective, tune_stiffness_noise, backend.map),
-            (vehicle.steering_scale, vehicle.yaw_inertia), count)
+        pairs = functools.partial(pooled_pair_objective, epochs, params.config, tune_stiffness_noise=tune_stiffness_noise,
+                                  run=backend.map)
+        estimate, inertia = search_scale_and_inertia(pairs(LOCATING_OBJECTIVE), (vehicle.steering_scale, vehicle.yaw_inertia),
+                                                     pairs("nll") if count else None, count or 0)
         params = replace(params, config=with_yaw_inertia(params.config, inertia.value))
     else:
         estimate = search_steering_scale(pooled_scale_objective(epochs, params.config, objective, tune_stiffness_noise,
                                                                 backend.map), vehicle.steering_scale)
         estimate = with_std(estimate, count) if count else estimate
+    shown = LOCATING_OBJECTIVE if with_inertia else objective  # the joint estimate is eq. 21's minimum
     for found in (estimate, inertia):
         if found is not None:
-            print(f"tuner: {found.format(objective)}", file=stream if stream is not None else sys.stderr, flush=True)
+            print(f"tuner: {found.format(shown)}", file=stream if stream is not None else sys.stderr, flush=True)
     chosen = with_steering_scale(params, estimate.value)
     return estimate, inertia, chosen, [store_bag_epochs(item.bag, chosen, scaled_epochs(e, estimate.factor), item.truth,
                                                         cache) for item, e in zip(decoded, epochs, strict=True)]
@@ -188,6 +195,7 @@ def calibrate_vehicle(decoded: Sequence[Any], params: EstimatorParams, backend: 
     Adds the keys to write to ``estimated``; returns the parameters and the bags' epochs at the estimates.
     """
     inertia = None
+    shown = LOCATING_OBJECTIVE if steering_scale and yaw_inertia else objective  # the joint estimate: eq. 21's minimum
     if steering_scale and not yaw_inertia and params.config.vehicle.iz <= 0.0:
         print("tuner: note: the steering scale is confounded with the yaw inertia, and vehicle.iz is m lf lr (paper "
               "eq. 5, a rule of thumb): add --estimate-yaw-inertia to search both", file=sys.stderr, flush=True)
@@ -195,13 +203,13 @@ def calibrate_vehicle(decoded: Sequence[Any], params: EstimatorParams, backend: 
         scale, inertia, params, decoded = estimate_bag_steering_scale(
             decoded, params, backend, objective=objective, tune_stiffness_noise=tune_stiffness_noise, cache=cache,
             with_inertia=yaw_inertia)
-        estimated.update(scale_calibration(scale, params, objective))
+        estimated.update(scale_calibration(scale, params, shown))
     elif yaw_inertia:
         inertia = estimate_bag_yaw_inertia([item.epochs for item in decoded], params, backend, objective=objective,
                                            tune_stiffness_noise=tune_stiffness_noise)
         params = replace(params, config=with_yaw_inertia(params.config, inertia.value))
     if inertia is not None:
-        estimated.update(inertia_calibration(inertia, params, objective))
+        estimated.update(inertia_calibration(inertia, params, shown))
     return params, list(decoded)
 
 

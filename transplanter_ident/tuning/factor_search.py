@@ -58,6 +58,8 @@ class FactorEstimate:
         """One line: the estimate, its objective, and the objective at the configured value."""
         at_configured = next((v for f, v in self.points if abs(f - 1.0) < 1e-9), math.nan)
         spread = f" +- {self.std:.4g}" if math.isfinite(self.std) else ""
+        if self.std == math.inf and not self.at_edge:
+            spread = " +- inf (the drives do not pin it)"
         low, high = (self.configured * b for b in self.bounds)
         edge = (f"; at the edge of the values searched, [{low:.4g}, {high:.4g}]: it may lie beyond them, "
                 f"{self.advice}" if self.at_edge else "")

@@ -2,16 +2,23 @@
 
 A steering sensor reading high (the input of paper eq. 1) and a yaw inertia too small (Iz of its yaw
 equation) both make the measured yaw response look larger than the model's, so the tuner's
-objective (eq. 21's mean |innovation| or the innovation NLL) has a tilted ridge in (scale, Iz): searched
-one after the other (:mod:`.steering_scale`, then :mod:`.yaw_inertia`), a sensor 2 % high on a
+objectives (eq. 21's mean |innovation| and the innovation NLL) have a tilted ridge in (scale, Iz):
+searched one after the other (:mod:`.steering_scale`, then :mod:`.yaw_inertia`), a sensor 2 % high on a
 vehicle whose Iz is 1.2 x m lf lr gave the scale 1.002 +- 0.0017 (truth 0.980) and Iz 1.005 x, and
 Cf 26 % low, valid. Asked for both, the tuner searches them jointly: a coarse grid of factors
 (0.95-1.05 on the scale in 1 % steps x 0.6-1.6 on Iz in 10 % steps), then a fine one (0.2 % x 1 %)
-around its minimum (:func:`grid_search_pair`). With ``nll`` a quadratic surface through the pooled NLL
-there gives both and their std, both directions at once (:func:`fit_pair`): each std holds what the other
-leaves open. Along that ridge the NLL's curvature overstates what the drives pin (errors of up to 6.5 of
-its std on three 2-minute drives at one speed), so the std are widened fourfold (RIDGE_INFLATION): the
-estimate is then rarely valid on such drives, which is what they can tell.
+around its minimum (:func:`grid_search_pair`).
+
+The estimate is the minimum of eq. 21 (``mae``; the vertex of a quadratic surface through it around
+the grid's best point, :func:`fit_surface`), whatever the tuner's objective: along the ridge the NLL
+leans to a larger yaw response (scale high, Iz low), through its heading innovations and its
+ln det S term (on noise-free drives too), while eq. 21 is dominated by the vy innovations, which do
+not lean. Its std comes from the NLL (objective ``nll``): the surface through it around its own
+minimum (:func:`pair_std`), whose inverse Hessian is the covariance of the pair (each std holds what
+the other leaves open), times STD_INFLATION (eq. 21's minimum spreads wider than the likelihood's).
+On 30 sets of three identification drives (``bench/joint_calibration_figures.py``) that took the
+median error from 1.1 % (scale) and 10.5 % (Iz) at the NLL's minimum to 0.4 % and 5.7 %, and the std
+to 0.375 x what the NLL's minimum needed (4 x its surface's).
 """
 
 from __future__ import annotations
@@ -32,15 +39,19 @@ from transplanter_ident.tuning.yaw_inertia import EDGE_ADVICE as INERTIA_ADVICE
 from transplanter_ident.tuning.yaw_inertia import with_yaw_inertia
 
 Pair = tuple[float, float]  # (factor on the steering scale, factor on Iz)
+PairObjective = Callable[[Sequence[Pair]], Sequence[float]]
 #: (low, high, coarse step, fine step) of each factor
 SCALE_GRID = (0.95, 1.05, 0.01, 0.002)
 INERTIA_GRID = (0.6, 1.6, 0.1, 0.01)
-#: fine steps either side of the minimum through which the NLL's quadratic surface is fitted
+#: fine steps either side of a grid's best point through which a quadratic surface is fitted (fit_surface)
 CURVATURE_STEPS = 3
-#: the std are the surface's times this: along the ridge the NLL's curvature overstates what the drives
-#: pin. Measured on 6 sets of three identification drives (2 m/s, +-15 deg, 120 s; sensor 1 or 1.02,
-#: Iz 1 or 1.2 x m lf lr): errors of 1-6.5 of the surface's std, rms 4 (the one-dimensional searches: rms 1.3)
-RIDGE_INFLATION = 4.0
+#: the std are the NLL surface's times this. Measured on 30 sets of three identification drives (2 m/s,
+#: +-15 deg, 120 s; sensor gain 0.98-1.02, Iz 0.75-1.4 x m lf lr; bench/joint_calibration_figures.py):
+#: eq. 21's minimum was off the truth by rms 1.35 / 1.38 (scale / Iz) of the surface's std, worst 4.5,
+#: on the 27 whose surface was a minimum (+inf on the other 3); x 1.5: 96 % of both within 2 std
+STD_INFLATION = 1.5
+#: the objective whose minimum is the estimate (eq. 21; see the module's docstring)
+LOCATING_OBJECTIVE = "mae"
 
 
 def pair_objective(epochs: EpochArrays, config: EstimatorConfig, pair: Pair, objective: str,
@@ -51,13 +62,12 @@ def pair_objective(epochs: EpochArrays, config: EstimatorConfig, pair: Pair, obj
 
 
 def pooled_pair_objective(bags: Sequence[EpochArrays], config: EstimatorConfig, objective: str,
-                          tune_stiffness_noise: bool = False,
-                          run: TaskMap | None = None) -> Callable[[Sequence[Pair]], list[float]]:
+                          tune_stiffness_noise: bool = False, run: TaskMap | None = None) -> PairObjective:
     """The objective of a batch of pairs, pooled over ``bags``; every (pair, bag) a task of ``run``."""
     return pooled_factor_objective(pair_objective, bags, config, objective, tune_stiffness_noise, run)
 
 
-def grid_search_pair(objective: Callable[[Sequence[Pair]], Sequence[float]], scale: tuple = SCALE_GRID,
+def grid_search_pair(objective: PairObjective, scale: tuple = SCALE_GRID,
                      inertia: tuple = INERTIA_GRID) -> tuple[Pair, float, dict[Pair, float]]:
     """(best pair, its value, every pair evaluated): a coarse product grid, then a fine one around its minimum.
 
@@ -77,47 +87,63 @@ def grid_search_pair(objective: Callable[[Sequence[Pair]], Sequence[float]], sca
     return best, seen[best], seen
 
 
-def fit_pair(points: dict[Pair, float], best: Pair, epochs: int, steps: Pair = (SCALE_GRID[3], INERTIA_GRID[3]),
-             reach: int = CURVATURE_STEPS) -> tuple[Pair, Pair]:
-    """(minimum, 1-sigma) of each factor: a quadratic surface through the NLL (x ``epochs``) within ``reach`` steps.
+def fit_surface(points: dict[Pair, float], best: Pair, steps: Pair = (SCALE_GRID[3], INERTIA_GRID[3]),
+                reach: int = CURVATURE_STEPS) -> tuple[Pair, np.ndarray | None]:
+    """(vertex, Hessian) of a quadratic surface through ``points`` within ``reach`` steps of ``best``.
 
-    The grid's best point is on a tilted ridge only within a few steps of the minimum: the surface's
-    vertex is the estimate (``best`` if the vertex lies outside the points fitted). The inverse of
-    its Hessian is the covariance of the pair (each std holds what the other leaves open), plus each
-    grid's rounding, times RIDGE_INFLATION; +inf where the surface is not a minimum, NaN with too few points.
+    The vertex is ``best`` where it lies outside the points fitted or the surface is not a minimum
+    (then the Hessian is None too, as with fewer than 6 points).
     """
     near = [(a - best[0], b - best[1], v) for (a, b), v in points.items() if math.isfinite(v)
             and abs(a - best[0]) <= reach * steps[0] + 1e-9 and abs(b - best[1]) <= reach * steps[1] + 1e-9]
-    if len(near) < 6 or epochs <= 0:
-        return best, (math.nan, math.nan)
+    if len(near) < 6:
+        return best, None
     da, db, v = (np.array(c) for c in zip(*near, strict=True))
     design = np.column_stack((np.ones_like(da), da, db, da * da, da * db, db * db))
-    coef = np.linalg.lstsq(design, epochs * v, rcond=None)[0]
+    coef = np.linalg.lstsq(design, v, rcond=None)[0]
     hessian = np.array([[2.0 * coef[3], coef[4]], [coef[4], 2.0 * coef[5]]])
     if not (hessian[0, 0] > 0.0 and np.linalg.det(hessian) > 0.0):
-        return best, (math.inf, math.inf)
-    cov = np.linalg.inv(hessian)
-    shift = -cov @ coef[1:3]
+        return best, None
+    shift = -np.linalg.solve(hessian, coef[1:3])
     inside = all(abs(shift[i]) <= reach * steps[i] for i in range(2))
-    vertex = (best[0] + float(shift[0]), best[1] + float(shift[1])) if inside else best
-    return vertex, tuple(RIDGE_INFLATION * math.sqrt(cov[i, i] + steps[i] ** 2 / 12.0) for i in range(2))
+    return ((best[0] + float(shift[0]), best[1] + float(shift[1])) if inside else best), hessian
 
 
-def search_scale_and_inertia(objective: Callable[[Sequence[Pair]], Sequence[float]], configured: Pair,
-                             epochs: int | None = None) -> tuple[FactorEstimate, FactorEstimate]:
+def pair_std(points: dict[Pair, float], best: Pair, epochs: int, steps: Pair = (SCALE_GRID[3], INERTIA_GRID[3])) -> Pair:
+    """1-sigma of each factor from the mean NLL over ``epochs`` epochs around its minimum ``best``.
+
+    The inverse Hessian of its surface (:func:`fit_surface`, x ``epochs``) is the covariance of the pair
+    (each std holds what the other leaves open), plus each grid's rounding, times STD_INFLATION; +inf
+    where the surface is not a minimum.
+    """
+    _, hessian = fit_surface(points, best, steps)
+    if hessian is None or epochs <= 0:
+        return math.inf, math.inf
+    cov = np.linalg.inv(epochs * hessian)
+    return tuple(STD_INFLATION * math.sqrt(cov[i, i] + steps[i] ** 2 / 12.0) for i in range(2))
+
+
+def search_scale_and_inertia(locate: PairObjective, configured: Pair, likelihood: PairObjective | None = None,
+                             epochs: int = 0) -> tuple[FactorEstimate, FactorEstimate]:
     """The steering scale and Iz (estimates with their ``configured`` values), searched jointly.
 
-    ``epochs``: the pooled epochs (objective ``nll``): then each is the fitted surface's vertex, with its
-    std (+inf at an edge of its range); without, the grid's best point.
+    ``locate``: eq. 21 of pairs, whose minimum is the estimate (the vertex of its surface around the grid's
+    best point, :func:`fit_surface`); ``likelihood``: the mean NLL of
+    pairs over ``epochs`` pooled epochs, whose surface gives the std (:func:`pair_std`; +inf at an edge
+    of either range; NaN without it).
     """
-    best, fitness, seen = grid_search_pair(objective)
-    found, stds = fit_pair(seen, best, epochs) if epochs else (best, (math.nan, math.nan))
+    best, fitness, seen = grid_search_pair(locate)
+    found, _ = fit_surface(seen, best)
+    stds, peak = (math.nan, math.nan), best
+    if likelihood is not None and epochs > 0:
+        peak, _, surface = grid_search_pair(likelihood)
+        stds = pair_std(surface, peak, epochs)
     out = []
     for i, (key, grid, advice) in enumerate((("vehicle.steering_scale", SCALE_GRID, SCALE_ADVICE),
                                               ("vehicle.iz", INERTIA_GRID, INERTIA_ADVICE))):
         points = tuple(sorted((p[i], v) for p, v in seen.items() if p[1 - i] == best[1 - i]))
-        edge = at_range_edge(best[i], grid[:2])
-        std = math.inf if epochs and edge else configured[i] * stds[i]
-        value = configured[i] * (best[i] if edge else found[i])
+        edge = at_range_edge(best[i], grid[:2]) or at_range_edge(peak[i], grid[:2])
+        std = math.inf if math.isfinite(stds[i]) and edge else configured[i] * stds[i]
+        value = configured[i] * (best[i] if at_range_edge(best[i], grid[:2]) else found[i])
         out.append(FactorEstimate(key, value, configured[i], fitness, points, grid[:2], std, advice))
     return out[0], out[1]

@@ -1,0 +1,96 @@
+"""Figures of ``tuner --estimate-steering-scale --estimate-yaw-inertia``: the joint (scale, Iz) search on simulated drives.
+
+Not a test (test/test_tuner_yaw_inertia.py checks one set through the CLI). Each set is three
+identification drives (test/drives.py: 2 m/s, +-15 deg sine of 6 s, 120 s) of one vehicle whose
+steering sensor reads the wheel angle x a gain drawn from 0.98-1.02 and whose yaw inertia is drawn
+from 0.75-1.4 x the configured m lf lr (paper eq. 5); set i uses drive seeds 3i .. 3i + 2 and draws
+its truth with ``numpy.random.default_rng(1000 + i)``. The search runs as the tuner runs it
+(:func:`transplanter_ident.tuning.scale_and_inertia.search_scale_and_inertia`, eq. 21 locating, the NLL's
+surface giving the std): per set the truth, the estimate, its std and the error in std (z); then,
+per factor, the rms of z, the worst |z|, how often +-2 std covers the truth (0.95 claimed), and the
+same for the NLL's own minimum (the estimate before, which leaned along the ridge).
+
+Run: ``.venv/bin/python bench/joint_calibration_figures.py [--sets 20] [--first 0] [--jobs 2]``
+(about 45 s per set on one core).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
+
+GAINS, INERTIAS = (0.98, 1.02), (0.75, 1.4)
+
+
+def one_set(index: int) -> dict:
+    """The truth and the joint search's results on set ``index`` (factors on the configured values)."""
+    from drives import sine_drive
+    from test_validity import epochs_of
+
+    from transplanter_ident.config.parameters import EstimatorConfig, VehicleParams
+    from transplanter_ident.sim.simulator import simulate
+    from transplanter_ident.tuning import scale_and_inertia as joint
+
+    rng = np.random.default_rng(1000 + index)
+    gain, inertia = float(rng.uniform(*GAINS)), float(rng.uniform(*INERTIAS))
+    vehicle = replace(VehicleParams(), iz=inertia * VehicleParams().yaw_inertia)
+    bags = [epochs_of(simulate(sine_drive(seed, vehicle=vehicle, steering_scale=gain)))
+            for seed in range(3 * index, 3 * index + 3)]
+    config, count = EstimatorConfig(), sum(len(b) for b in bags)
+    locate, likelihood = (joint.pooled_pair_objective(bags, config, kind) for kind in ("mae", "nll"))
+    scale, iz = joint.search_scale_and_inertia(locate, (1.0, 1.0), likelihood, count)
+    peak, _, surface = joint.grid_search_pair(likelihood)
+    nll_vertex, _ = joint.fit_surface(surface, peak)
+    return {"index": index, "truth": (1.0 / gain, inertia), "estimate": (scale.value, iz.value),
+            "std": (scale.std, iz.std), "nll": nll_vertex}
+
+
+def summary(rows: list[dict], key: str) -> str:
+    """The rms z, worst |z| and the 2-std coverage of ``key`` (estimate or nll) over the sets, per factor."""
+    parts = []
+    for i, name in enumerate(("scale", "Iz")):
+        z = np.array([(r[key][i] - r["truth"][i]) / r["std"][i] for r in rows if math.isfinite(r["std"][i])])
+        if not len(z):
+            parts.append(f"{name}: no finite std")
+            continue
+        parts.append(f"{name}: rms z {math.sqrt(float(np.mean(z ** 2))):.2f}, worst |z| {np.max(np.abs(z)):.2f}, "
+                     f"within 2 std {np.mean(np.abs(z) <= 2.0):.0%} of {len(z)}")
+    return "; ".join(parts)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sets", type=int, default=20)
+    parser.add_argument("--first", type=int, default=0)
+    parser.add_argument("--jobs", type=int, default=2)
+    args = parser.parse_args(argv)
+    indices = range(args.first, args.first + args.sets)
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        rows = []
+        for row in pool.map(one_set, indices):
+            rows.append(row)
+            (ts, ti), (es, ei), (ss, si), (ns, ni) = row["truth"], row["estimate"], row["std"], row["nll"]
+            print(f"set {row['index']:2d}: truth scale {ts:.4f} Iz {ti:.3f} x; estimate {es:.4f} +- {ss:.4f}, "
+                  f"{ei:.3f} +- {si:.3f} x (z {(es - ts) / ss:+.2f}, {(ei - ti) / si:+.2f}); "
+                  f"NLL's minimum {ns:.4f}, {ni:.3f} x", flush=True)
+    print(f"estimate (eq. 21's minimum), std x{_inflation():g}: {summary(rows, 'estimate')}")
+    print(f"the NLL's own minimum, same std: {summary(rows, 'nll')}")
+    return 0
+
+
+def _inflation() -> float:
+    from transplanter_ident.tuning.scale_and_inertia import STD_INFLATION
+
+    return STD_INFLATION
+
+
+if __name__ == "__main__":
+    sys.exit(main())
