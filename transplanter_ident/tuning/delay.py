@@ -70,15 +70,29 @@ def assemble_epochs(samples: Sequence[Sample], params: EstimatorParams, delay: f
     return EpochArrays(assemble(EpochAssembler(settings), samples))
 
 
+#: relative 1-sigma of the warm start's stiffness (the first pass's end); wide enough for any factor searched,
+#: whose first pass ends at that factor's own stiffness
+WARM_START_STD = 0.1
+
+
 def warm_start(config: EstimatorConfig, epochs: EpochArrays) -> EstimatorConfig:
-    """``config`` started from the stiffness and steering offset a first pass over ``epochs`` ends with."""
+    """``config`` started from the stiffness and steering offset a first pass over ``epochs`` ends with.
+
+    The stiffness's initial std is then WARM_START_STD (relative) where P0's was wider: from P0's
+    (a factor of e^2 in ln C) the first seconds of a drive could throw the stiffness a factor of 16
+    and diverge the single pass a candidate is scored with, at some candidates and not at others
+    (a 1-D Iz search put Iz 17 % off with a std of 0.8 %, the NLL's jump there read as curvature).
+    """
     final = run_sequence(config, epochs)[-1]
     low, high = config.options.stiffness_bounds
     stiffness = tuple(float(np.clip(final[i], low, high)) for i in (O_CF, O_CR))
     if not all(math.isfinite(v) for v in (*stiffness, final[O_OFFSET])):
         return config
     offset = float(np.clip(final[O_OFFSET], -MAX_OFFSET, MAX_OFFSET))
-    return replace(config, noise=replace(config.noise, initial_stiffness=stiffness),
+    log_state = config.options.stiffness_state == "log"
+    p0 = config.noise.initial_covariance
+    narrowed = tuple(min(p0[2 + i], WARM_START_STD ** 2 * (1.0 if log_state else c * c)) for i, c in enumerate(stiffness))
+    return replace(config, noise=replace(config.noise, initial_stiffness=stiffness, initial_covariance=(*p0[:2], *narrowed)),
                    vehicle=replace(config.vehicle, steering_offset=offset))
 
 
