@@ -61,6 +61,26 @@ def test_the_yaw_inertia_is_found_on_three_drives(factor: float) -> None:
 
 
 
+def test_a_start_that_throws_the_stiffness_does_not_decide_the_yaw_inertia() -> None:
+    """Drive seeds 178-180, Iz 0.866 x: Iz within 6 % and 3 std (measured 0.840 x +- 2.3 %).
+
+    From P0's prior the first 3 s of seed 178 threw Cf to 723 N/rad and diverged the scored pass at the
+    factors near the truth, and not below them; the search put Iz at 0.720 x with a std of 0.7 % (21 std
+    off). The warm start's stiffness prior (tuning/delay.py WARM_START_STD) keeps the start.
+    """
+    from transplanter_ident.tuning.delay import WARM_START_STD, warm_start
+
+    factor = 0.8663
+    drives = [epochs_of(simulate(sine_drive(seed, vehicle=true_vehicle(factor)))) for seed in (178, 179, 180)]
+    warm = warm_start(EstimatorConfig(), drives[0])
+    assert warm.noise.initial_covariance[2:] == (WARM_START_STD ** 2, WARM_START_STD ** 2)
+    assert warm.noise.initial_covariance[:2] == EstimatorConfig().noise.initial_covariance[:2]
+    estimate = search_yaw_inertia(pooled_inertia_objective(drives, EstimatorConfig(), "nll"), VEHICLE.yaw_inertia)
+    estimate = with_std(estimate, sum(len(d) for d in drives))
+    error = estimate.value / (factor * VEHICLE.yaw_inertia) - 1.0
+    assert abs(error) <= 0.06 and abs(error) <= 3.0 * estimate.std / estimate.value, (error, estimate.format("nll"))
+
+
 def test_cli_writes_the_yaw_inertia_and_replay_with_it_is_right(tmp_path: Path, capsys) -> None:  # noqa: ANN001
     """Two drives of a vehicle whose Iz is 1.2 x m lf lr: OUT.yaml holds it, and a third drive replayed with it is right."""
     from transplanter_ident.bags import write_sim_bag
