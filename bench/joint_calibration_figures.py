@@ -10,8 +10,12 @@ surface giving the std): per set the truth, the estimate, its std and the error 
 per factor, the rms of z, the worst |z|, how often +-2 std covers the truth (0.95 claimed), and the
 same for the NLL's own minimum (the estimate before, which leaned along the ridge).
 
-Run: ``.venv/bin/python bench/joint_calibration_figures.py [--sets 20] [--first 0] [--jobs 2]``
-(about 45 s per set on one core).
+``--inertia-only``: the sensor right (gain 1), Iz alone searched as ``tuner --estimate-yaw-inertia`` does
+(:mod:`transplanter_ident.tuning.yaw_inertia`, the NLL's minimum and curvature); set i then uses drive seeds
+100 + 3i .. 102 + 3i and ``default_rng(2000 + i)``.
+
+Run: ``.venv/bin/python bench/joint_calibration_figures.py [--sets 20] [--first 0] [--jobs 2] [--inertia-only]``
+(about 70 s per set on one core; 8 s with ``--inertia-only``).
 """
 
 from __future__ import annotations
@@ -53,6 +57,25 @@ def one_set(index: int) -> dict:
             "std": (scale.std, iz.std), "nll": nll_vertex}
 
 
+def one_inertia_set(index: int) -> dict:
+    """The truth and the one-dimensional Iz search's result on set ``index`` (the sensor right)."""
+    from drives import sine_drive
+    from test_validity import epochs_of
+
+    from transplanter_ident.config.parameters import EstimatorConfig, VehicleParams
+    from transplanter_ident.sim.simulator import simulate
+    from transplanter_ident.tuning import yaw_inertia
+
+    rng = np.random.default_rng(2000 + index)
+    inertia = float(rng.uniform(*INERTIAS))
+    vehicle = replace(VehicleParams(), iz=inertia * VehicleParams().yaw_inertia)
+    bags = [epochs_of(simulate(sine_drive(seed, vehicle=vehicle))) for seed in range(100 + 3 * index, 103 + 3 * index)]
+    config, configured = EstimatorConfig(), VehicleParams().yaw_inertia
+    objective = yaw_inertia.pooled_inertia_objective(bags, config, "nll")
+    found = yaw_inertia.with_std(yaw_inertia.search_yaw_inertia(objective, configured), sum(len(b) for b in bags))
+    return {"index": index, "truth": (1.0, inertia), "estimate": (1.0, found.factor), "std": (math.inf, found.std / configured)}
+
+
 def summary(rows: list[dict], key: str) -> str:
     """The rms z, worst |z| and the 2-std coverage of ``key`` (estimate or nll) over the sets, per factor."""
     parts = []
@@ -71,8 +94,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sets", type=int, default=20)
     parser.add_argument("--first", type=int, default=0)
     parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--inertia-only", action="store_true")
     args = parser.parse_args(argv)
     indices = range(args.first, args.first + args.sets)
+    if args.inertia_only:
+        with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+            rows = list(pool.map(one_inertia_set, indices))
+        for row in rows:
+            truth, found, std = row["truth"][1], row["estimate"][1], row["std"][1]
+            print(f"set {row['index']:2d}: truth Iz {truth:.3f} x; estimate {found:.3f} +- {std:.3f} x "
+                  f"(z {(found - truth) / std:+.2f})")
+        errors = [abs(r["estimate"][1] / r["truth"][1] - 1.0) for r in rows]
+        print(f"Iz alone (the NLL's minimum and curvature): {summary(rows, 'estimate').split('; ')[1]}; "
+              f"median |error| {100 * float(np.median(errors)):.2f} %, worst {100 * max(errors):.1f} %")
+        return 0
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         rows = []
         for row in pool.map(one_set, indices):
