@@ -81,7 +81,7 @@ def warm_start(config: EstimatorConfig, epochs: EpochArrays) -> EstimatorConfig:
     The stiffness's initial std is then WARM_START_STD (relative) where P0's was wider: from P0's
     (a factor of e^2 in ln C) the first seconds of a drive could throw the stiffness a factor of 16
     and diverge the single pass a candidate is scored with, at some candidates and not at others
-    (a 1-D Iz search put Iz 17 % off with a std of 0.8 %, the NLL's jump there read as curvature).
+    (a 1-D Iz search put Iz 17 % off with a std of 1 %, the NLL's jump there read as curvature).
     """
     final = run_sequence(config, epochs)[-1]
     low, high = config.options.stiffness_bounds
