@@ -12,10 +12,12 @@ same for the NLL's own minimum (the estimate before, which leaned along the ridg
 
 ``--inertia-only``: the sensor right (gain 1), Iz alone searched as ``tuner --estimate-yaw-inertia`` does
 (:mod:`transplanter_ident.tuning.yaw_inertia`, the NLL's minimum and curvature); set i then uses drive seeds
-100 + 3i .. 102 + 3i and ``default_rng(2000 + i)``.
+100 + 3i .. 102 + 3i and ``default_rng(2000 + i)``. ``--scale-only``: Iz right (m lf lr), the gain alone searched
+as ``tuner --estimate-steering-scale`` does (:mod:`transplanter_ident.tuning.steering_scale`); drive seeds
+200 + 3i .. 202 + 3i, ``default_rng(3000 + i)``.
 
-Run: ``.venv/bin/python bench/joint_calibration_figures.py [--sets 20] [--first 0] [--jobs 2] [--inertia-only]``
-(about 70 s per set on one core; 8 s with ``--inertia-only``).
+Run: ``.venv/bin/python bench/joint_calibration_figures.py [--sets 20] [--first 0] [--jobs 2] [--inertia-only |
+--scale-only]`` (about 70 s per set on one core; 8 s with either of those).
 """
 
 from __future__ import annotations
@@ -57,23 +59,34 @@ def one_set(index: int) -> dict:
             "std": (scale.std, iz.std), "nll": nll_vertex}
 
 
-def one_inertia_set(index: int) -> dict:
-    """The truth and the one-dimensional Iz search's result on set ``index`` (the sensor right)."""
+def one_factor_set(index: int, factor: str) -> dict:
+    """The truth and a one-dimensional search's result on set ``index``: ``factor`` "iz" or "scale", the other right."""
     from drives import sine_drive
     from test_validity import epochs_of
 
     from transplanter_ident.config.parameters import EstimatorConfig, VehicleParams
     from transplanter_ident.sim.simulator import simulate
-    from transplanter_ident.tuning import yaw_inertia
+    from transplanter_ident.tuning import steering_scale, yaw_inertia
 
-    rng = np.random.default_rng(2000 + index)
-    inertia = float(rng.uniform(*INERTIAS))
-    vehicle = replace(VehicleParams(), iz=inertia * VehicleParams().yaw_inertia)
-    bags = [epochs_of(simulate(sine_drive(seed, vehicle=vehicle))) for seed in range(100 + 3 * index, 103 + 3 * index)]
-    config, configured = EstimatorConfig(), VehicleParams().yaw_inertia
-    objective = yaw_inertia.pooled_inertia_objective(bags, config, "nll")
-    found = yaw_inertia.with_std(yaw_inertia.search_yaw_inertia(objective, configured), sum(len(b) for b in bags))
-    return {"index": index, "truth": (1.0, inertia), "estimate": (1.0, found.factor), "std": (math.inf, found.std / configured)}
+    inertia_run = factor == "iz"
+    rng = np.random.default_rng((2000 if inertia_run else 3000) + index)
+    truth = float(rng.uniform(*(INERTIAS if inertia_run else GAINS)))
+    vehicle = replace(VehicleParams(), iz=truth * VehicleParams().yaw_inertia) if inertia_run else VehicleParams()
+    first = (100 if inertia_run else 200) + 3 * index
+    bags = [epochs_of(simulate(sine_drive(seed, vehicle=vehicle, steering_scale=1.0 if inertia_run else truth)))
+            for seed in range(first, first + 3)]
+    config, count = EstimatorConfig(), sum(len(b) for b in bags)
+    if inertia_run:
+        found = yaw_inertia.with_std(yaw_inertia.search_yaw_inertia(
+            yaw_inertia.pooled_inertia_objective(bags, config, "nll"), VehicleParams().yaw_inertia), count)
+    else:
+        found = steering_scale.with_std(steering_scale.search_steering_scale(
+            steering_scale.pooled_scale_objective(bags, config, "nll"), 1.0), count)
+        truth = 1.0 / truth  # the scale that undoes the gain
+    pair = (1.0, truth), (1.0, found.factor), (math.inf, found.std / found.configured)
+    if not inertia_run:
+        pair = tuple(p[::-1] for p in pair)
+    return {"index": index, "truth": pair[0], "estimate": pair[1], "std": pair[2]}
 
 
 def summary(rows: list[dict], key: str) -> str:
@@ -94,19 +107,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sets", type=int, default=20)
     parser.add_argument("--first", type=int, default=0)
     parser.add_argument("--jobs", type=int, default=2)
-    parser.add_argument("--inertia-only", action="store_true")
+    alone = parser.add_mutually_exclusive_group()
+    alone.add_argument("--inertia-only", action="store_true")
+    alone.add_argument("--scale-only", action="store_true")
     args = parser.parse_args(argv)
     indices = range(args.first, args.first + args.sets)
-    if args.inertia_only:
+    alone = "iz" if args.inertia_only else "scale" if args.scale_only else None
+    if alone:
+        k, name = (1, "Iz") if alone == "iz" else (0, "scale")
         with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-            rows = list(pool.map(one_inertia_set, indices))
+            rows = list(pool.map(one_factor_set, indices, [alone] * len(indices)))
         for row in rows:
-            truth, found, std = row["truth"][1], row["estimate"][1], row["std"][1]
-            print(f"set {row['index']:2d}: truth Iz {truth:.3f} x; estimate {found:.3f} +- {std:.3f} x "
+            truth, found, std = row["truth"][k], row["estimate"][k], row["std"][k]
+            print(f"set {row['index']:2d}: truth {name} {truth:.4f} x; estimate {found:.4f} +- {std:.4f} x "
                   f"(z {(found - truth) / std:+.2f})")
-        errors = [abs(r["estimate"][1] / r["truth"][1] - 1.0) for r in rows]
-        print(f"Iz alone (the NLL's minimum and curvature): {summary(rows, 'estimate').split('; ')[1]}; "
-              f"median |error| {100 * float(np.median(errors)):.2f} %, worst {100 * max(errors):.1f} %")
+        errors = [abs(r["estimate"][k] / r["truth"][k] - 1.0) for r in rows]
+        print(f"{name} alone (the NLL's minimum and curvature): {summary(rows, 'estimate').split('; ')[k]}; "
+              f"median |error| {100 * float(np.median(errors)):.2f} %, worst {100 * max(errors):.2f} %")
         return 0
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         rows = []
