@@ -119,7 +119,6 @@ def late_bag(tmp_path_factory) -> Path:  # noqa: ANN001
     return path
 
 
-
 def test_cli_writes_the_delay_and_replay_loads_it(late_bag, tmp_path, capsys) -> None:  # noqa: ANN001
     out, cache = tmp_path / "tuned.yaml", tmp_path / "cache"
     args = ["--particles", "4", "--iterations", "2", "--seed", "3", "--jobs", "1", "--epoch-cache", str(cache)]

@@ -88,7 +88,6 @@ def test_the_scale_is_found_on_three_drives(sensor_gain: float, drive: dict, tol
     assert 0.0003 <= estimate.std <= 0.01 and abs(error) <= 3.0 * estimate.std, (error, estimate.format("nll"))
 
 
-
 def test_cli_writes_the_scale_and_replay_loads_it(tmp_path: Path, capsys) -> None:  # noqa: ANN001
     """Two drives with the sensor 2 % high: OUT.yaml holds the scale and its std, and replay with it is right."""
     from transplanter_ident.bags import write_sim_bag
