@@ -25,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 
-from drives import LATE_DROP, NOISY_GNSS, NOISY_GNSS_R, run_drive, sine_drive  # noqa: E402
+from drives import LATE_DROP, NOISY_GNSS, NOISY_GNSS_R, drift, run_drive, sine_drive  # noqa: E402
 from independent_sim import independent_drive  # noqa: E402
 from test_validity import epochs_of  # noqa: E402
 
@@ -121,8 +121,12 @@ ROWS: dict[str, dict[str, object]] = {
     "stiffness drop -40 % at 75 s, 150 s": {"duration": 150.0, "stiffness": LATE_DROP},
     "stiffness drop -40 %, GNSS noise 2x, R set to it": {"duration": 150.0, "stiffness": LATE_DROP,
                                                          "noise": NOISY_GNSS, "filter_noise": NOISY_GNSS_R},
-    "stiffness drifting -40 % over 4 min": {"duration": 240.0, "stiffness": StiffnessSchedule(
-        times=(0.0, 240.0), front=(8000.0, 4800.0), rear=(10000.0, 6000.0), transition=240.0)},
+    "stiffness drifting -40 % over 4 min": {"duration": 240.0, "stiffness": drift(-0.4, 1.0, 240.0)},
+    "stiffness drifting -30 % from 30 to 180 s": {"duration": 180.0, "stiffness": drift(-0.3, 30.0, 180.0)},
+    "stiffness drifting +30 % from 30 to 180 s": {"duration": 180.0, "stiffness": drift(0.3, 30.0, 180.0)},
+    "stiffness drifting -20 % from 30 to 180 s": {"duration": 180.0, "stiffness": drift(-0.2, 30.0, 180.0)},
+    "stiffness drifting -20 % over 4.5 min, 1.5 m/s": {"duration": 300.0, "speed": 1.5,
+                                                       "stiffness": drift(-0.2, 30.0, 300.0)},
 }
 #: the same drive from a simulator that shares no code with the package's (test/independent_sim.py)
 INDEPENDENT_ROWS: dict[str, dict[str, object]] = {

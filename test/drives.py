@@ -36,6 +36,14 @@ from transplanter_ident.sim.simulator import SensorNoise, SimConfig, SimResult, 
 TRUE_CF, TRUE_CR = 8000.0, 10000.0
 #: a 40 % drop of both stiffnesses at 75 s (a wet patch; 150 s drives)
 LATE_DROP = StiffnessSchedule(times=(0.0, 75.0), front=(TRUE_CF, 0.6 * TRUE_CF), rear=(TRUE_CR, 0.6 * TRUE_CR))
+
+
+def drift(change: float, start: float, end: float) -> StiffnessSchedule:
+    """Both stiffnesses drifting linearly to (1 + change) x from ``start`` to ``end`` s (a changing surface or load)."""
+    return StiffnessSchedule(times=(0.0, start), front=(TRUE_CF, (1.0 + change) * TRUE_CF),
+                             rear=(TRUE_CR, (1.0 + change) * TRUE_CR), transition=end - start)
+
+
 #: GNSS velocity and heading 2x noisier than the default, and the R that describes them (a tuned noisier receiver)
 NOISY_GNSS = SensorNoise(velocity=2.0 * SensorNoise().velocity, heading=2.0 * SensorNoise().heading)
 NOISY_GNSS_R = NoiseParams(measurement_noise=tuple(4.0 * r for r in NoiseParams().measurement_noise))

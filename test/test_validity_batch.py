@@ -1,8 +1,9 @@
 """decide_sequence's batch kernel (evaluation/validity_batch.py) makes ValidityMonitor's decisions, epoch for epoch.
 
 Compared on the drives of test_validity.py (clean, stiffness drop, the paper's step, unconfigured
-delays, course-over-ground heading, ENU declared NED) and on outputs perturbed at random (statuses,
-NaN NIS, spread, bounds) under random validity settings, so every check and the hysteresis switch.
+delays, course-over-ground heading, ENU declared NED), a drifting stiffness, and on outputs perturbed
+at random (statuses, NaN NIS, spread, bounds, stiffness updates and alarms) under random validity
+settings, so every check and the hysteresis switch.
 """
 
 from __future__ import annotations
@@ -12,11 +13,21 @@ import math
 
 import numpy as np
 import pytest
-from drives import run_drive, sine_drive
+from drives import drift, run_drive, sine_drive
 from test_validity import CONFIG, LEVER, SCENARIOS, SETTINGS, epochs_of
 
 from transplanter_ident.config.parameters import EstimatorConfig, ValiditySettings
-from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR_STD, O_NIS_CONFIGURED, O_STATUS, StepStatus
+from transplanter_ident.ekf.layout import (
+    O_CF,
+    O_CF_STD,
+    O_CHANGE,
+    O_CR_STD,
+    O_NIS_CONFIGURED,
+    O_STATUS,
+    O_UPDATE_F,
+    O_UPDATE_R,
+    StepStatus,
+)
 from transplanter_ident.evaluation.validity import (
     DISTRUSTED,
     RECHECK,
@@ -58,6 +69,17 @@ def test_same_decisions_on_the_validity_drives(name: str) -> None:
         assert np.array_equal(decide_sequence(CONFIG, SETTINGS, epochs, outputs), expected), (name, seed)
 
 
+def test_same_decisions_on_a_drifting_stiffness() -> None:
+    """Both stiffnesses drifting 40 % down over 4 min (test_drift.py): the drift test fires, and the same decisions."""
+    for seed in (0, 1):
+        result = simulate(sine_drive(seed, duration=240.0, stiffness=drift(-0.4, 1.0, 240.0)))
+        epochs, outputs = epochs_of(result), run_drive(result).outputs
+        expected = monitor_decisions(SETTINGS, epochs, outputs)
+        assert np.array_equal(decide_sequence(CONFIG, SETTINGS, epochs, outputs), expected), seed
+        off = dataclasses.replace(SETTINGS, drift_window=0.0)
+        assert not np.array_equal(decide_sequence(CONFIG, off, epochs, outputs), expected)  # the test decided
+
+
 def test_same_decisions_with_an_antenna_ahead_of_the_cg() -> None:
     """An antenna 1.2 m ahead of the CG (+-15 deg, 2 m/s; |vy / vx| ~0.2 there, ~0.02 at the CG): the same decisions.
 
@@ -85,21 +107,26 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
     rng = np.random.default_rng(11)
     epochs, clean = _drive("clean", 2)
     statuses = np.array([int(s) for s in StepStatus])
-    flips = 0
-    for case in range(60):
+    flips = drifts = 0
+    for case in range(100):
         outputs = clean.copy()
         n = len(outputs)
         for _ in range(int(rng.integers(0, 6))):
             start = int(rng.integers(0, n))
             stop = min(n, start + int(rng.integers(1, 300)))
-            what = int(rng.integers(0, 4))
+            what = int(rng.integers(0, 5))
             if what == 0:
                 outputs[start:stop, O_STATUS] = rng.choice(statuses, stop - start)
             elif what == 1:
                 outputs[start:stop, O_NIS_CONFIGURED] = np.where(rng.random(stop - start) < 0.5, math.nan, 40.0)
             elif what == 2:
                 outputs[start:stop, [O_CF_STD, O_CR_STD]] *= 5.0
-            else:
+            elif what == 3:  # stiffness updates pushing one way, some rows without an update, an alarm
+                outputs[start:stop, [O_UPDATE_F, O_UPDATE_R]] = rng.normal(rng.choice((-1.0, 1.0)), 1.0, (stop - start, 2))
+                outputs[start:stop, O_UPDATE_R] *= rng.random(stop - start) < 0.8
+                outputs[start:stop, O_UPDATE_F] *= rng.random(stop - start) < 0.8
+                outputs[int(rng.integers(start, stop)), O_CHANGE] = 1.0
+            elif what == 4:
                 outputs[start:stop, O_CF] = CONFIG.options.stiffness_bounds[1]
         settings = dataclasses.replace(
             SETTINGS, window=float(rng.choice((2.0, 5.0, 10.0))), hold_on=float(rng.choice((0.2, 1.0, 3.0))),
@@ -107,7 +134,8 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
             max_nonlinear_fraction=float(rng.choice((0.01, 0.2))), min_steering_std=float(rng.choice((0.02, 0.2))),
             max_sideslip=float(rng.choice((0.02, 0.35))), course_ratio=float(rng.choice((0.2, 5.0))),
             max_suspect_fraction=float(rng.choice((0.05, 0.5))), max_delay_sigmas=float(rng.choice((1.0, 3.0))),
-            max_delay_shift=float(rng.choice((0.3, 1.5, 100.0))))
+            max_delay_shift=float(rng.choice((0.3, 1.5, 100.0))), drift_window=float(rng.choice((0.0, 20.0, 90.0))),
+            max_drift_sigmas=float(rng.choice((1.0, 2.5))))
         rejected = [0] * n
         for _ in range(int(rng.integers(0, 4))):
             start = int(rng.integers(0, n))
@@ -119,7 +147,10 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
                            monitor.antenna_x, monitor.rear_slip_gain)
         assert got is not None and np.array_equal(got, expected), f"case {case}"
         flips += int(np.count_nonzero(np.diff(expected.astype(int))))
+        drifts += not np.array_equal(expected, monitor_decisions(dataclasses.replace(settings, drift_window=0.0), epochs,
+                                                                 outputs, rejected))
     assert flips > 50  # the cases switch valid on and off, not one constant answer
+    assert drifts >= 3  # and the drift test decided some of them
 
 
 def test_times_that_go_back_use_the_monitor() -> None:

@@ -198,13 +198,15 @@ class ValiditySettings:
     max_suspect_fraction: float = 0.1  # of the window's epochs after a rejected sample, or gated/rolled back
     max_delay_sigmas: float = 3.0  # an unconfigured GNSS delay this many std from 0 (the filter's measure) fails
     max_delay_shift: float = 1.5  # the Cf or Cr shift the measured delay implies (lower 1-sigma), in reported std
+    drift_window: float = 90.0  # s of stiffness updates (since the last change alarm) the drift test sums; 0: off
+    max_drift_sigmas: float = 2.5  # their normalised sum beyond +-this x sqrt(n): the stiffness drifts, the band lags
 
     def __post_init__(self) -> None:
         check_fields(self, "validity", positive=("window", "max_rel_std", "nis_quantile_sigmas",
                                                  "max_autocorrelation", "max_sideslip", "course_ratio",
                                                  "max_nonlinear_fraction", "max_suspect_fraction",
-                                                 "max_delay_sigmas", "max_delay_shift"),
-                     non_negative=("min_steering_std", "min_yaw_rate_std", "hold_on", "hold_off"))
+                                                 "max_delay_sigmas", "max_delay_shift", "max_drift_sigmas"),
+                     non_negative=("min_steering_std", "min_yaw_rate_std", "hold_on", "hold_off", "drift_window"))
 
 
 

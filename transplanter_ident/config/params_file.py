@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from transplanter_ident.config.keys import is_ros_builtin, unknown_key_message
 from transplanter_ident.config.parameters import (
     EstimatorConfig,
     FilterOptions,
@@ -50,8 +51,6 @@ from transplanter_ident.config.schema import (
     SCHEMA,
     Param,
     default_values,
-    is_ros_builtin,
-    unknown_key_message,
 )
 
 WILDCARD = "/**"

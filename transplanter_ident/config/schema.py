@@ -16,7 +16,6 @@ This module imports no ROS and no YAML.
 
 from __future__ import annotations
 
-import difflib
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -31,9 +30,6 @@ from transplanter_ident.config.parameters import (
 
 FRAMES = ("enu", "ned")
 KINDS = ("float", "int", "bool", "str", "float_list")
-#: parameters rclpy itself declares or reads; accepted everywhere and passed through untouched
-ROS_BUILTIN_KEYS = ("use_sim_time", "start_type_description_service")
-ROS_BUILTIN_PREFIXES = ("qos_overrides.",)
 
 Value = float | int | bool | str | tuple[float, ...]
 
@@ -347,6 +343,11 @@ SCHEMA: tuple[Param, ...] = (
     _float("validity.max_suspect_fraction", 0.1, "", "fraction of the window's epochs that follow a rejected "
            "input sample (or a dropped epoch) or that the filter gated, rejected or rolled back, above which the "
            "input is suspect and the estimate not valid (issue #14)", 0.001, 1.0, read_only=False),
+    _float("validity.drift_window", 90.0, "s", "span of stiffness updates (since the last surface-change alarm) "
+           "that the drift test sums; 0: off", 0.0, 3600.0, read_only=False),
+    _float("validity.max_drift_sigmas", 2.5, "", "the sum of those updates, each normalised by its std (N(0, 1) "
+           "while the stiffness holds still), beyond this many sqrt(n) makes the estimate invalid: the stiffness "
+           "drifts faster than ekf.process_noise lets it follow, and its band lags", 0.1, 100.0, read_only=False),
     # diagnostics (evaluation.health.HealthThresholds, plus the publishing period and the latency log)
     _float("diagnostics.stale_timeout", 1.0, "s", "time without a message before an input is reported stale "
            "(ERROR)", 0.01, 3600.0, read_only=False),
@@ -375,25 +376,3 @@ if len(PARAMS) != len(SCHEMA):
 def default_values() -> dict[str, Value]:
     """Every key with its default (float lists as tuples)."""
     return {row.key: row.default for row in SCHEMA}
-
-
-def is_ros_builtin(key: str) -> bool:
-    """Parameters of rclpy itself (``use_sim_time``, QoS overrides): not ours to check."""
-    return key in ROS_BUILTIN_KEYS or key.startswith(ROS_BUILTIN_PREFIXES)
-
-
-def unknown_key_message(key: str) -> str:
-    """One line naming an unknown key, with the nearest known keys (or the known ones of its namespace)."""
-    group = [k.partition(".")[2] for k in PARAMS if k.startswith(key + ".")]
-    if group:  # e.g. ``ekf: [1, 2]``: a value (a list) where a mapping of parameters belongs
-        return (f"{key} is a group of parameters, not a value: write it as a mapping "
-                f"({key}: {{{group[0]}: ...}}; known {key}.*: {', '.join(group)})")
-    close = difflib.get_close_matches(key, PARAMS, n=3, cutoff=0.8)
-    if close:
-        return f"{key} is not a known parameter (did you mean {' or '.join(close)}?)"
-    namespace = key.partition(".")[0] + "."
-    same = [k for k in PARAMS if k.startswith(namespace)]
-    if same:
-        return f"{key} is not a known parameter (known {namespace}*: {', '.join(k.partition('.')[2] for k in same)})"
-    spaces = ", ".join(dict.fromkeys(k.partition(".")[0] + ".*" for k in PARAMS))
-    return f"{key} is not a known parameter (known: {spaces})"

@@ -18,6 +18,10 @@ Either sum past its threshold is an alarm: for ``change_hold`` s the stiffness r
 ``change_process_noise``, so the estimate moves to the new surface over several epochs rather than
 one large, badly linearised step; the tires' saturation is measured anew and all sums restart.
 Each epoch adds at most half its test's threshold: one outlier alone never raises an alarm.
+
+The decorrelated updates also go out (layout.O_UPDATE_F/R; 0 at an alarm and while the raised
+density lasts) for the validity's drift test, which sums them over a longer span: a stiffness that
+drifts, rather than steps, keeps them pushing one way by less than the directional test's shift.
 """
 
 from __future__ import annotations
@@ -36,6 +40,8 @@ from transplanter_ident.ekf.layout import (
     N_SHIFT,
     O_CHANGE,
     O_CUSUM,
+    O_UPDATE_F,
+    O_UPDATE_R,
     S_CHANGE_HOLD,
     S_CUSUM_CAP,
     S_CUSUM_SCALE,
@@ -70,11 +76,15 @@ def decorrelated(memo, k, u, weight):
 
 
 @inline_kernel
-def shift_alarm(memo, settings, dt, u_f, u_r):
-    """Add this epoch's updates to the directional CUSUMs; True if one passed ``change_shift_threshold``."""
+def shift_alarm(memo, settings, dt, u_f, u_r, out):
+    """Add this epoch's updates to the directional CUSUMs; True if one passed ``change_shift_threshold``.
+
+    The decorrelated updates go to out[O_UPDATE_F], out[O_UPDATE_R].
+    """
     delta, threshold = settings[S_SHIFT], settings[S_SHIFT_THRESHOLD]
     weight = min(1.0, dt / settings[S_NOISE_MEMORY])
     scaled_f, scaled_r = decorrelated(memo, 0, u_f, weight), decorrelated(memo, 1, u_r, weight)
+    out[O_UPDATE_F], out[O_UPDATE_R] = scaled_f, scaled_r
     alarm = False
     for i in range(N_SHIFT):  # Cf up, Cf down, Cr up, Cr down
         u = scaled_f if i < 2 else scaled_r
@@ -92,7 +102,10 @@ def detect_change(memo, settings, t, dt, nis, u_f, u_r, out):
     scale = settings[S_CUSUM_SCALE]
     llr = min(-math.log(scale) + 0.5 * nis * (1.0 - 1.0 / scale), settings[S_CUSUM_CAP])
     g = max(0.0, memo[M_CUSUM] + llr)
-    shifted = shift_alarm(memo, settings, dt, u_f, u_r)
+    adapting = t <= memo[M_ADAPT_UNTIL]
+    shifted = shift_alarm(memo, settings, dt, u_f, u_r, out)
+    if adapting or shifted or g > settings[S_CUSUM_THRESHOLD]:  # the catch-up after an alarm is no drift
+        out[O_UPDATE_F], out[O_UPDATE_R] = 0.0, 0.0
     if g > settings[S_CUSUM_THRESHOLD] or shifted:  # a new surface: the tire's saturation is measured anew
         memo[M_ADAPT_UNTIL] = t + settings[S_CHANGE_HOLD]
         memo[M_SATURATION_SCORE] = 0.0

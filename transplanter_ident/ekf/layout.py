@@ -65,7 +65,10 @@ O_DELAY_SENS_F, O_DELAY_SENS_R = 29, 30  # relative error of Cf, Cr per second o
 O_DELAY_ESTIMATE, O_DELAY_ESTIMATE_STD = 31, 32  # s: that delay as the innovations show it (std 0: none yet)
 O_SATURATION, O_SATURATION_STD = 33, 34  # the tire's saturation as a fraction of one at min_friction (std 0: none)
 O_SCALE_SENS_F, O_SCALE_SENS_R = 35, 36  # relative error of Cf, Cr per unit (relative) steering gain error (0: off)
-N_OUTPUTS = 37
+# the stiffness updates, each normalised by its std and decorrelated (change.decorrelated; 0: no update, or a
+# change alarm and its hold): N(0, 1) while the stiffness holds still, one way while it drifts (validity's drift test)
+O_UPDATE_F, O_UPDATE_R = 37, 38
+N_OUTPUTS = 39
 
 # memo vector
 M_T_PREV, M_INITIALISED, M_GATED, M_CUSUM, M_ADAPT_UNTIL, M_DIVERGED = 0, 1, 2, 3, 4, 5

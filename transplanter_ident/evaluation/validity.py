@@ -15,6 +15,10 @@ of these hold over a window of data time (the same decision online and offline):
   less the rear axle's slip at the estimated Cr), and the GNSS velocity agrees with the heading (an
   ENU/NED mix-up implies a sideslip at the CG no transplanter has, or a course that turns against
   the heading; an antenna ahead of the CG adds antenna_x r to its vy, which is no sideslip);
+* following: the stiffness updates since the last change alarm, over ``drift_window`` s, each
+  normalised by its std (layout.O_UPDATE_F/R, N(0, 1) while the stiffness holds still), do not sum
+  beyond ``max_drift_sigmas`` sqrt(n): a stiffness that drifts (a changing surface or load) faster
+  than the random walk lets the estimate follow keeps pushing them one way, and the band lags it;
 * trusted input (issue #14): at most ``max_suspect_fraction`` of the window's epochs follow a
   rejected input sample (:attr:`Sample.rejected`: the samples and epochs rejected since the
   previous epoch, in the order they were processed: the same online and offline) or were gated,
@@ -38,6 +42,7 @@ from transplanter_ident.config.parameters import EstimatorConfig, ValiditySettin
 from transplanter_ident.ekf.layout import (
     O_CF,
     O_CF_STD,
+    O_CHANGE,
     O_CR,
     O_CR_STD,
     O_DELAY_ESTIMATE,
@@ -48,6 +53,8 @@ from transplanter_ident.ekf.layout import (
     O_NIS_CONFIGURED,
     O_S00,
     O_STATUS,
+    O_UPDATE_F,
+    O_UPDATE_R,
     StepStatus,
 )
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
@@ -61,6 +68,8 @@ from transplanter_ident.evaluation.validity_batch import (
 
 #: s of data between two evaluations of the window checks
 RECHECK = 1.0
+#: fewer stiffness updates in the drift test's span: no verdict
+MIN_DRIFT_UPDATES = 10
 #: statuses whose innovation is a proper one-step prediction error
 PREDICTED = frozenset({StepStatus.UPDATED, StepStatus.NONLINEAR, StepStatus.GATED})
 #: statuses of an epoch whose measurement the filter did not trust
@@ -88,6 +97,8 @@ class Sample:
     delay: float = 0.0  # s, the GNSS delay left out of gnss.delay as the filter measures it (layout.O_DELAY_ESTIMATE)
     delay_std: float = 0.0  # s, its std (0: not measured yet)
     delay_sensitivity: tuple[float, float] = (0.0, 0.0)  # relative error of Cf, Cr per s of delay (O_DELAY_SENS_F/R)
+    updates: tuple[float, float] = (0.0, 0.0)  # the normalised stiffness updates (O_UPDATE_F/R; 0: none)
+    change: bool = False  # a surface-change alarm at this epoch (O_CHANGE): the drift test starts again
 
 
 @dataclass(frozen=True)
@@ -118,6 +129,7 @@ class ValidityMonitor:
 
     def reset(self) -> None:
         self._window: deque[Sample] = deque()
+        self._updates: deque[tuple[float, float, float]] = deque()  # (t, update_f, update_r) of the drift test
         self._valid = False
         self._good_since: float | None = None
         self._bad_since: float | None = None
@@ -133,11 +145,12 @@ class ValidityMonitor:
         self._window.append(sample)
         while self._window[0].t < sample.t - self.settings.window:
             self._window.popleft()
+        self._keep_updates(sample)
         if sample.t - self._checked_at >= RECHECK:
             self._checked_at = sample.t
             window = list(self._window)
             self._window_hard = self._plausibility(window)
-            self._window_soft = self._suspect(window) + self._consistency(window)
+            self._window_soft = self._suspect(window) + self._consistency(window) + self._drift()
         hard = self._bounds(sample) + self._window_hard
         soft = self._epoch_checks(sample) + self._window_soft
         self.last = self._hysteresis(sample.t, hard, soft)
@@ -214,6 +227,28 @@ class ValidityMonitor:
         return [f"input suspect: {suspect} of the window's {len(window)} epochs follow a rejected sample or were "
                 f"gated or rolled back ({rejected} samples rejected; see the input lines of /diagnostics)"]
 
+    def _keep_updates(self, sample: Sample) -> None:
+        if sample.change:
+            self._updates.clear()
+        if sample.updates != (0.0, 0.0):
+            self._updates.append((sample.t, *sample.updates))
+        while self._updates and self._updates[0][0] < sample.t - self.settings.drift_window:
+            self._updates.popleft()
+
+    def _drift(self) -> list[str]:
+        n = len(self._updates)
+        if self.settings.drift_window <= 0.0 or n < MIN_DRIFT_UPDATES:
+            return []
+        total_f = total_r = 0.0
+        for _, update_f, update_r in self._updates:  # in order: validity_batch sums alike
+            total_f += update_f
+            total_r += update_r
+        limit = self.settings.max_drift_sigmas * math.sqrt(n)
+        return [f"{name} keeps moving {'up' if total > 0.0 else 'down'} (its last {n} updates sum to "
+                f"{total / math.sqrt(n):+.1f} sqrt(n) of their std): the stiffness drifts faster than "
+                "ekf.process_noise lets the estimate follow (a changing surface or load), so the band lags it"
+                for name, total in (("Cf", total_f), ("Cr", total_r)) if abs(total) > limit]
+
     def _consistency(self, window: list[Sample]) -> list[str]:
         s = self.settings
         if len(window) < 5 or window[-1].t - window[0].t < 0.5 * s.window:
@@ -282,7 +317,8 @@ def sample_of(epoch: Epoch, row: np.ndarray, rejected: int = 0) -> Sample:
                   antenna_lateral_velocity=float(epoch.antenna_lateral_velocity), nis=float(row[O_NIS_CONFIGURED]),
                   whitened_vy=float(row[O_E0]) / math.sqrt(s00) if s00 > 0.0 else 0.0, rejected=int(rejected),
                   delay=float(row[O_DELAY_ESTIMATE]), delay_std=float(row[O_DELAY_ESTIMATE_STD]),
-                  delay_sensitivity=(float(row[O_DELAY_SENS_F]), float(row[O_DELAY_SENS_R])))
+                  delay_sensitivity=(float(row[O_DELAY_SENS_F]), float(row[O_DELAY_SENS_R])),
+                  updates=(float(row[O_UPDATE_F]), float(row[O_UPDATE_R])), change=bool(row[O_CHANGE] > 0.0))
 
 
 def monitor_for(config: EstimatorConfig, settings: ValiditySettings) -> ValidityMonitor:
@@ -303,7 +339,7 @@ def decide_sequence(config: EstimatorConfig, settings: ValiditySettings, epochs:
     monitor = monitor_for(config, settings)
     counts = rejected if rejected is not None else [0] * len(epochs)
     valid = decide_batch(settings, monitor.bounds, monitor.lever, RECHECK, epochs, outputs, counts, DISTRUSTED,
-                         monitor.antenna_x, monitor.rear_slip_gain)
+                         monitor.antenna_x, monitor.rear_slip_gain, MIN_DRIFT_UPDATES)
     if valid is not None:
         return valid
     return np.array([monitor.step(sample_of(epochs[i], outputs[i], counts[i])).valid for i in range(len(epochs))],

@@ -20,6 +20,7 @@ from transplanter_ident.config.parameters import ValiditySettings
 from transplanter_ident.ekf.layout import (
     O_CF,
     O_CF_STD,
+    O_CHANGE,
     O_CR,
     O_CR_STD,
     O_DELAY_ESTIMATE,
@@ -30,6 +31,8 @@ from transplanter_ident.ekf.layout import (
     O_NIS_CONFIGURED,
     O_S00,
     O_STATUS,
+    O_UPDATE_F,
+    O_UPDATE_R,
     StepStatus,
 )
 from transplanter_ident.epochs.epoch import EpochArrays
@@ -73,13 +76,14 @@ def steady_antenna_vy(lever: float, rear_slip_gain: float, speed: float, cr: flo
 def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever: float, recheck: float,
                  epochs: EpochArrays, outputs: np.ndarray, rejected: Sequence[int],
                  distrusted: Iterable[StepStatus], antenna_x: float = 0.0,
-                 rear_slip_gain: float = 0.0) -> np.ndarray | None:
+                 rear_slip_gain: float = 0.0, min_drift_updates: int = 10) -> np.ndarray | None:
     """The monitor's ``valid`` for every epoch, or None when the times do not strictly increase.
 
     ``rejected``: per epoch, the samples rejected since the previous one (Sample.rejected);
     ``distrusted``: the statuses that make an epoch suspect (validity.DISTRUSTED); ``antenna_x``: the
     antenna ahead of the CG (the sideslip check takes vy at the CG, ValidityMonitor.antenna_x);
-    ``rear_slip_gain``: the course-over-ground check's (:func:`steady_antenna_vy`, ValidityMonitor.rear_slip_gain).
+    ``rear_slip_gain``: the course-over-ground check's (:func:`steady_antenna_vy`, ValidityMonitor.rear_slip_gain);
+    ``min_drift_updates``: the drift test's (validity.MIN_DRIFT_UPDATES).
     """
     t = np.ascontiguousarray(epochs.t, dtype=np.float64)
     n = len(t)
@@ -127,22 +131,26 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
     s = settings
     limits = np.array([s.window, recheck, s.max_sideslip, 0.05 ** 2, s.course_ratio,
                        s.max_nonlinear_fraction, s.min_steering_std, s.min_yaw_rate_std, s.nis_quantile_sigmas,
-                       s.max_autocorrelation, s.hold_on, s.hold_off, s.max_suspect_fraction])
+                       s.max_autocorrelation, s.hold_on, s.hold_off, s.max_suspect_fraction, s.drift_window,
+                       s.max_drift_sigmas, min_drift_updates])
+    updates = np.ascontiguousarray(outputs[:, [O_UPDATE_F, O_UPDATE_R]], dtype=np.float64)
     return _decide_kernel(t, status == int(StepStatus.NONLINEAR), hard, soft, np.ascontiguousarray(epochs.steering),
                           r, plaus, sideslip[plaus], rate, r_sq, vy_sq, steady_sq, consist, nis[consist],
-                          whitened[consist], suspect, limits)
+                          whitened[consist], suspect, updates, outputs[:, O_CHANGE] > 0.0, limits)
 
 
 @entry_kernel
 def _decide_kernel(t, nonlinear, epoch_hard, epoch_soft, steering, r, plaus, sideslip, rate, r_sq, vy_sq,  # noqa: ANN001, ANN201, PLR0913
-                   steady_sq, consist, nis, whitened, suspect, limits):
+                   steady_sq, consist, nis, whitened, suspect, updates, change, limits):
     """ValidityMonitor.step over the sequence (times strictly increasing): the valid flag of every epoch."""
     window, recheck, max_sideslip, mixed_floor, course_ratio = limits[0], limits[1], limits[2], limits[3], limits[4]
     max_nonlinear, min_steering_std, min_yaw_rate_std = limits[5], limits[6], limits[7]
     sigmas, max_rho, hold_on, hold_off, max_suspect = limits[8], limits[9], limits[10], limits[11], limits[12]
+    drift_window = limits[13]
     n = len(t)
     valid_out = np.zeros(n, dtype=np.bool_)
     lo = 0
+    drift_lo = 0  # the drift test's span: from the last change alarm, and drift_window s
     checked_at = -np.inf
     window_hard = False
     window_soft = False
@@ -152,6 +160,10 @@ def _decide_kernel(t, nonlinear, epoch_hard, epoch_soft, steering, r, plaus, sid
     for i in range(n):
         while t[lo] < t[i] - window:
             lo += 1
+        if change[i]:
+            drift_lo = i
+        while drift_lo < i and t[drift_lo] < t[i] - drift_window:
+            drift_lo += 1
         if t[i] - checked_at >= recheck:
             checked_at = t[i]
             a = np.searchsorted(plaus, lo)
@@ -160,7 +172,7 @@ def _decide_kernel(t, nonlinear, epoch_hard, epoch_soft, steering, r, plaus, sid
                                          mixed_floor, course_ratio)
             window_soft = suspect[lo:i + 1].sum() > max_suspect * (i - lo + 1) or _inconsistent(
                 lo, i, t, window, nonlinear, steering, r, consist, nis, whitened, max_nonlinear, min_steering_std,
-                min_yaw_rate_std, sigmas, max_rho)
+                min_yaw_rate_std, sigmas, max_rho) or _drifting(drift_lo, i, updates, limits)
         hard = epoch_hard[i] or window_hard
         if hard or epoch_soft[i] or window_soft:
             good = False
@@ -255,3 +267,23 @@ def _inconsistent(lo, i, t, window, nonlinear, steering, r, consist, nis, whiten
     for j in range(a + 1, b):
         lag += (whitened[j - 1] - mean) * (whitened[j] - mean)
     return lag / power > max_rho
+
+
+@entry_kernel
+def _drifting(lo, i, updates, limits):  # noqa: ANN001, ANN201
+    """Whether ValidityMonitor._drift finds a reason, over the updates of epochs lo..i (rows not both 0)."""
+    drift_window, max_sigmas, min_updates = limits[13], limits[14], limits[15]
+    if drift_window <= 0.0:
+        return False
+    count = 0
+    total_f = 0.0
+    total_r = 0.0
+    for j in range(lo, i + 1):
+        if updates[j, 0] != 0.0 or updates[j, 1] != 0.0:
+            count += 1
+            total_f += updates[j, 0]
+            total_r += updates[j, 1]
+    if count < min_updates:
+        return False
+    limit = max_sigmas * np.sqrt(count)
+    return abs(total_f) > limit or abs(total_r) > limit

@@ -49,8 +49,9 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float32, Float64
 from std_srvs.srv import Trigger
 
+from transplanter_ident.config.keys import is_ros_builtin, unknown_key_message
 from transplanter_ident.config.params_file import ParamsError, parameter_value
-from transplanter_ident.config.schema import PARAMS, SCHEMA, is_ros_builtin, unknown_key_message
+from transplanter_ident.config.schema import PARAMS, SCHEMA
 from transplanter_ident.ekf.joint_ekf import Estimate, JointEKF, warm_up
 from transplanter_ident.ekf.persistence import Keeper, LearnedState, default_path
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler

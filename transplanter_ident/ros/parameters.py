@@ -20,6 +20,7 @@ from typing import Any
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.parameter import Parameter
 
+from transplanter_ident.config.keys import is_ros_builtin
 from transplanter_ident.config.params_file import (
     NODE_ONLY_KEYS,
     EstimatorParams,
@@ -28,7 +29,7 @@ from transplanter_ident.config.params_file import (
     flat_to_params,
     params_to_flat,
 )
-from transplanter_ident.config.schema import PARAMS, SCHEMA, default_values, is_ros_builtin
+from transplanter_ident.config.schema import PARAMS, SCHEMA, default_values
 from transplanter_ident.evaluation.health import HealthThresholds
 
 ROLES = ("velocity", "heading", "steering")

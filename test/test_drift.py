@@ -1,0 +1,97 @@
+"""The validity's drift test (evaluation/validity.py): a stiffness that drifts, rather than steps.
+
+A surface or load that changes over minutes moves the stiffness faster than the random walk
+(``ekf.process_noise``) lets the estimate follow, and no change alarm fires: on the 2 m/s
+identification drive with both stiffnesses drifting 40 % down over 4 min, the estimate lagged 8-10 %
+behind while valid in 96 % of the epochs after 30 s, 43 % of those outside +-2 sigma (10 seeds;
+``bench/robustness_sweep.py "stiffness drifting -40 % over 4 min"`` with ``--validity drift_window=0``).
+The drift test sums the normalised stiffness updates (layout.O_UPDATE_F/R) over
+``validity.drift_window`` and calls that drift when they keep pushing one way.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import numpy as np
+from drives import LATE_DROP, Run, drift, run_drive, sine_drive
+from test_validity import CONFIG, SETTINGS, epochs_of
+
+from transplanter_ident.config.parameters import FilterOptions
+from transplanter_ident.ekf.layout import O_CHANGE, O_STATUS, O_UPDATE_F, O_UPDATE_R, StepStatus
+from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.evaluation.validity import decide_sequence, monitor_for, sample_of
+from transplanter_ident.sim.simulator import simulate
+
+SEEDS = range(8)
+DRIFT = {"duration": 240.0, "stiffness": drift(-0.4, 1.0, 240.0)}
+OFF = dataclasses.replace(SETTINGS, drift_window=0.0)
+
+
+@functools.cache
+def runs(name: str) -> tuple[tuple[Run, EpochArrays], ...]:
+    overrides = {"drift": DRIFT, "clean": {}, "drop": {"duration": 150.0, "stiffness": LATE_DROP}}[name]
+    out = []
+    for seed in SEEDS:
+        result = simulate(sine_drive(seed, **overrides))
+        out.append((run_drive(result), epochs_of(result)))
+    return tuple(out)
+
+
+def missed_and_valid(name: str, settings) -> tuple[float, float]:  # noqa: ANN001
+    """(share of the valid epochs after 30 s that +-2 sigma misses (Cf or Cr), valid share after 30 s), pooled."""
+    missed, valid_share = [], []
+    for run, epochs in runs(name):
+        valid = decide_sequence(CONFIG, settings, epochs, run.outputs)
+        after = run.t >= 30.0
+        front, rear = run.covered()
+        missed.extend(~(front & rear)[valid & after])
+        valid_share.append(np.mean(valid[after]))
+    return (float(np.mean(missed)) if missed else 0.0), float(np.mean(valid_share))
+
+
+def test_a_drifting_stiffness_is_flagged_and_named() -> None:
+    """-40 % over 4 min at 2 m/s, 8 seeds: the band misses less, and the reason says why.
+
+    Required: in <= 15 % of the valid epochs after 30 s and <= 1/3 of what it missed without the test
+    (measured 9.2 % against 42.6 %; valid 26 % against 95 %). 15 % is what the test achieves, not what
+    a band promises (~5-9 %): the bench's drift rows stay bold in the README, and raising the stiffness
+    random walk is the user's lever.
+    """
+    with_test, valid_with = missed_and_valid("drift", SETTINGS)
+    without, valid_without = missed_and_valid("drift", OFF)
+    assert without >= 0.3, without  # the drive shows the failure the test is for
+    assert with_test <= 0.15 and with_test <= without / 3.0, (with_test, without)
+    assert valid_with < valid_without
+    run, epochs = runs("drift")[0]
+    monitor = monitor_for(CONFIG, SETTINGS)
+    reasons = {r for i in range(len(epochs)) for r in monitor.step(sample_of(epochs[i], run.outputs[i])).reasons}
+    assert any("keeps moving down" in r and "ekf.process_noise" in r for r in reasons), reasons
+
+
+def test_steady_and_stepping_stiffness_lose_nothing() -> None:
+    """Clean drives and a 40 % drop at 75 s (whose alarm restarts the sums), 8 seeds each: valid as often.
+
+    Required: the valid share with the drift test within 1 point of the share without (measured: equal,
+    98.8 % and 83.8 %).
+    """
+    for name in ("clean", "drop"):
+        _, valid_with = missed_and_valid(name, SETTINGS)
+        _, valid_without = missed_and_valid(name, OFF)
+        assert valid_with >= valid_without - 0.01, (name, valid_with, valid_without)
+
+
+def test_the_updates_restart_at_a_change_alarm() -> None:
+    """O_UPDATE_F/R: nonzero on updated epochs, 0 at an alarm and while its raised random walk lasts."""
+    hold = FilterOptions().change_hold
+    alarms = 0
+    for run, _ in runs("drop"):
+        o, t = run.outputs, run.t
+        updates = o[:, [O_UPDATE_F, O_UPDATE_R]]
+        for a in np.flatnonzero(o[:, O_CHANGE] > 0.0):
+            alarms += 1
+            assert not updates[(t >= t[a]) & (t <= t[a] + hold)].any()
+        updated = o[:, O_STATUS] == int(StepStatus.UPDATED)
+        assert np.mean(updates[updated, 0] != 0.0) > 0.9
+    assert alarms >= len(SEEDS)
