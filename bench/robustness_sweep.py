@@ -10,7 +10,8 @@ valid, the share of valid epochs whose +-2 sigma band misses the truth (Cf or Cr
 exceeds 10 %, the share of all epochs the band misses, and the final |error| (median, worst). A
 valid estimate that the band misses is the worst output; an invalid one only costs availability.
 
-Run: ``.venv/bin/python bench/robustness_sweep.py [--seeds 5] [--option NAME=VALUE] [ROW ...]``.
+Run: ``.venv/bin/python bench/robustness_sweep.py [--seeds 5] [--option NAME=VALUE] [--validity NAME=VALUE]
+[--stiffness-noise FACTOR] [ROW ...]``.
 """
 
 from __future__ import annotations
@@ -150,13 +151,21 @@ def drive(name: str, seed: int) -> tuple[SimResult, VehicleParams]:
     return simulate(sim), told or sim.vehicle
 
 
-def row_figures(name: str, seeds: int, options: FilterOptions, settings: ValiditySettings | None = None) -> str:
+def with_stiffness_noise(noise: NoiseParams, factor: float) -> NoiseParams:
+    """``noise`` with the stiffness random walks (the last two entries of ekf.process_noise) x ``factor``."""
+    q = noise.process_noise
+    return replace(noise, process_noise=(q[0], q[1], factor * q[2], factor * q[3]))
+
+
+def row_figures(name: str, seeds: int, options: FilterOptions, settings: ValiditySettings | None = None,
+                stiffness_noise: float = 1.0) -> str:
     settings = settings or ValiditySettings()
     shares, finals = [], []
     for seed in range(seeds):
         result, told = drive(name, seed)
         config = EstimatorConfig(vehicle=told, options=options,
-                                 noise=ALL_ROWS[name].get("filter_noise", NoiseParams()))
+                                 noise=with_stiffness_noise(ALL_ROWS[name].get("filter_noise", NoiseParams()),
+                                                            stiffness_noise))
         run = run_drive(result, config)
         valid = decide_sequence(config, settings, epochs_of(result, steering_scale=told.steering_scale), run.outputs)
         after = run.t >= 30.0
@@ -187,21 +196,24 @@ def main(argv: list[str] | None = None) -> int:
                         help="a FilterOptions field (number) to set, e.g. saturation_prior=0 (repeatable)")
     parser.add_argument("--validity", action="append", default=[], metavar="NAME=VALUE",
                         help="a ValiditySettings field (number) to set, e.g. max_autocorrelation=1 (repeatable)")
+    parser.add_argument("--stiffness-noise", type=float, default=1.0, metavar="FACTOR",
+                        help="the stiffness random walks (ekf.process_noise's last two entries) x FACTOR")
     parser.add_argument("rows", nargs="*", help="rows to run (default: all): " + ", ".join(ALL_ROWS).replace("%", "%%"))
     args = parser.parse_args(argv)
     unknown = [r for r in args.rows if r not in ALL_ROWS]
-    if unknown or args.seeds < 1:
-        parser.error(f"unknown rows {unknown}" if unknown else "--seeds must be >= 1")
+    if unknown or args.seeds < 1 or not args.stiffness_noise > 0.0:
+        parser.error(f"unknown rows {unknown}" if unknown else "--seeds and --stiffness-noise must be positive")
     try:
         options = _with(FilterOptions(), args.option)
         settings = _with(ValiditySettings(), args.validity)
     except (TypeError, ValueError) as error:
         parser.error(f"--option/--validity: {error}")
     width = max(len(name) for name in ALL_ROWS)
-    print(f"seeds 0-{args.seeds - 1}, from 30 s on; defaults{''.join(' ' + o for o in args.option + args.validity)}")
+    noise = f" stiffness random walk x{args.stiffness_noise:g}" if args.stiffness_noise != 1.0 else ""
+    print(f"seeds 0-{args.seeds - 1}, from 30 s on; defaults{''.join(' ' + o for o in args.option + args.validity)}{noise}")
     print(f"{'condition':<{width}}  valid  valid&missed  valid&err>10%  missed  final |err| median, worst [%]")
     for name in args.rows or ALL_ROWS:
-        print(f"{name:<{width}}  {row_figures(name, args.seeds, options, settings)}", flush=True)
+        print(f"{name:<{width}}  {row_figures(name, args.seeds, options, settings, args.stiffness_noise)}", flush=True)
     return 0
 
 
