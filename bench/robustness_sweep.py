@@ -122,6 +122,10 @@ ROWS: dict[str, dict[str, object]] = {
     "stiffness drop -40 % at 75 s, 150 s": {"duration": 150.0, "stiffness": LATE_DROP},
     "stiffness drop -40 %, GNSS noise 2x, R set to it": {"duration": 150.0, "stiffness": LATE_DROP,
                                                          "noise": NOISY_GNSS, "filter_noise": NOISY_GNSS_R},
+    "stiffness rising +30 % at 75 s, 180 s": {"duration": 180.0, "stiffness": StiffnessSchedule(
+        times=(0.0, 75.0), front=(8000.0, 10400.0), rear=(10000.0, 13000.0))},
+    "stiffness drop -20 % at 75 s, 180 s": {"duration": 180.0, "stiffness": StiffnessSchedule(
+        times=(0.0, 75.0), front=(8000.0, 6400.0), rear=(10000.0, 8000.0))},
     "stiffness drifting -40 % over 4 min": {"duration": 240.0, "stiffness": drift(-0.4, 1.0, 240.0)},
     "stiffness drifting -30 % from 30 to 180 s": {"duration": 180.0, "stiffness": drift(-0.3, 30.0, 180.0)},
     "stiffness drifting +30 % from 30 to 180 s": {"duration": 180.0, "stiffness": drift(0.3, 30.0, 180.0)},

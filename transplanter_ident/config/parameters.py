@@ -89,7 +89,7 @@ class FilterOptions:
     change_detection: bool = True  # the surface-change CUSUM on the innovations
     change_scale: float = 2.0  # innovation variance ratio the surface-change CUSUM tests for
     change_threshold: float = 8.0  # CUSUM alarm level (log-likelihood ratio)
-    change_shift: float = 1.0  # mean of the normalised stiffness updates (in their std) the directional test looks for
+    change_shift: float = 0.7  # mean of the normalised stiffness updates (in their std) the directional test looks for
     change_shift_threshold: float = 10.0  # its CUSUM alarm level (log-likelihood ratio)
     change_process_noise: float = 2.0e-2  # stiffness Q density after an alarm, (ln C)^2/s
     change_hold: float = 4.0  # s the raised density lasts after an alarm

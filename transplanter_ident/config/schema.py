@@ -277,7 +277,7 @@ SCHEMA: tuple[Param, ...] = (
     _float("ekf.change_scale", 2.0, "", "innovation variance ratio the change test looks for (4 before: with GNSS "
            "noise 2x the default and R set to it, a 40 % drop went unseen)", 1.01, 100.0),
     _float("ekf.change_threshold", 8.0, "", "CUSUM alarm level (log-likelihood ratio; 12 before)", 1.0, 1000.0),
-    _float("ekf.change_shift", 1.0, "", "the directional change test: mean, in their std, of the stiffness updates "
+    _float("ekf.change_shift", 0.7, "", "the directional change test: mean, in their std, of the stiffness updates "
            "it looks for (a surface change pushes them one way; the variance test alone missed drops)", 0.05, 10.0),
     _float("ekf.change_shift_threshold", 10.0, "", "its CUSUM alarm level (log-likelihood ratio)", 1.0, 1000.0),
     _float("ekf.change_process_noise", 2.0e-2, "(ln C)^2/s", "stiffness Q density (relative) for change_hold "
