@@ -3,7 +3,8 @@
 A 40 % stiffness drop at 75 s of a 150 s identification drive, GNSS noise 2x the default and R set
 to it (the robustness sweep's row): the drop barely raises the innovations' variance, and the
 variance test alone missed it on 2 of 10 seeds (final errors 14 %, test_real_sensors.py). The
-directional test sees it on every seed.
+directional test sees it on every seed. A 30 % rise (firmer ground) moves the innovations less, and
+is seen seconds later.
 """
 
 from __future__ import annotations
