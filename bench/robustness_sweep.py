@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 
-from drives import LATE_DROP, NOISY_GNSS, NOISY_GNSS_R, drift, run_drive, sine_drive  # noqa: E402
+from drives import LATE_DROP, NOISY_GNSS, NOISY_GNSS_R, drift, run_drive, sine_drive, step_change  # noqa: E402
 from independent_sim import independent_drive  # noqa: E402
 from test_validity import epochs_of  # noqa: E402
 
@@ -125,10 +125,8 @@ ROWS: dict[str, dict[str, object]] = {
     "stiffness drop -40 % at 75 s, 150 s": {"duration": 150.0, "stiffness": LATE_DROP},
     "stiffness drop -40 %, GNSS noise 2x, R set to it": {"duration": 150.0, "stiffness": LATE_DROP,
                                                          "noise": NOISY_GNSS, "filter_noise": NOISY_GNSS_R},
-    "stiffness rising +30 % at 75 s, 180 s": {"duration": 180.0, "stiffness": StiffnessSchedule(
-        times=(0.0, 75.0), front=(8000.0, 10400.0), rear=(10000.0, 13000.0))},
-    "stiffness drop -20 % at 75 s, 180 s": {"duration": 180.0, "stiffness": StiffnessSchedule(
-        times=(0.0, 75.0), front=(8000.0, 6400.0), rear=(10000.0, 8000.0))},
+    "stiffness rising +30 % at 75 s, 180 s": {"duration": 180.0, "stiffness": step_change(0.3, 75.0)},
+    "stiffness drop -20 % at 75 s, 180 s": {"duration": 180.0, "stiffness": step_change(-0.2, 75.0)},
     "stiffness drifting -40 % over 4 min": {"duration": 240.0, "stiffness": drift(-0.4, 1.0, 240.0)},
     "stiffness drifting -30 % from 30 to 180 s": {"duration": 180.0, "stiffness": drift(-0.3, 30.0, 180.0)},
     "stiffness drifting +30 % from 30 to 180 s": {"duration": 180.0, "stiffness": drift(0.3, 30.0, 180.0)},

@@ -38,6 +38,12 @@ TRUE_CF, TRUE_CR = 8000.0, 10000.0
 LATE_DROP = StiffnessSchedule(times=(0.0, 75.0), front=(TRUE_CF, 0.6 * TRUE_CF), rear=(TRUE_CR, 0.6 * TRUE_CR))
 
 
+def step_change(change: float, at: float) -> StiffnessSchedule:
+    """Both stiffnesses stepping to (1 + change) x at ``at`` s (a new surface: -0.4 a wet patch, +0.3 firmer ground)."""
+    return StiffnessSchedule(times=(0.0, at), front=(TRUE_CF, (1.0 + change) * TRUE_CF),
+                             rear=(TRUE_CR, (1.0 + change) * TRUE_CR))
+
+
 def drift(change: float, start: float, end: float) -> StiffnessSchedule:
     """Both stiffnesses drifting linearly to (1 + change) x from ``start`` to ``end`` s (a changing surface or load)."""
     return StiffnessSchedule(times=(0.0, start), front=(TRUE_CF, (1.0 + change) * TRUE_CF),

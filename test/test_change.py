@@ -13,7 +13,7 @@ import math
 from dataclasses import replace
 
 import numpy as np
-from drives import NOISY_GNSS_R, TRUE_CF, TRUE_CR, noisy_late_drop, run_drive, sine_drive
+from drives import NOISY_GNSS_R, noisy_late_drop, run_drive, sine_drive, step_change
 from helpers import simulate_epochs
 from test_ekf import epoch_list
 from test_validity import SETTINGS, epochs_of
@@ -30,7 +30,6 @@ from transplanter_ident.ekf.layout import (
     StepStatus,
 )
 from transplanter_ident.evaluation.validity import decide_sequence
-from transplanter_ident.sim.signals import StiffnessSchedule
 from transplanter_ident.sim.simulator import SensorNoise, SimConfig, simulate
 
 DROP = 75.0  # s
@@ -156,7 +155,7 @@ def _rise_outcome(options: FilterOptions) -> tuple[float, list[float]]:
     Returns the share of the valid epochs after 30 s outside +-2 sigma, and per seed the seconds from
     the rise to the first alarm (inf: none).
     """
-    rise = StiffnessSchedule(times=(0.0, DROP), front=(TRUE_CF, 1.3 * TRUE_CF), rear=(TRUE_CR, 1.3 * TRUE_CR))
+    rise = step_change(0.3, DROP)
     config = EstimatorConfig(options=options)
     missed, delays = [], []
     for seed in range(8):
