@@ -189,10 +189,18 @@ def validity_figures(results: Iterable[SimResult], config: EstimatorConfig,
 def pooled_validity_figures(drives: Iterable[tuple[SimResult, EstimatorConfig]],
                             epochs_for: Callable[[SimResult], EpochArrays], start: float = 30.0) -> ValidityFigures:
     """:func:`validity_figures` of drives each filtered with its own configuration."""
+    def judged() -> Iterable[tuple[Run, np.ndarray]]:
+        for result, config in drives:
+            run = run_drive(result, config)
+            yield run, decide_sequence(config, ValiditySettings(), epochs_for(result), run.outputs)
+
+    return judged_figures(judged(), start)
+
+
+def judged_figures(judged: Iterable[tuple[Run, np.ndarray]], start: float = 30.0) -> ValidityFigures:
+    """The figures of runs already judged: each run with its valid flag per epoch, from ``start`` s on."""
     shares, missed, finals = [], [], []
-    for result, config in drives:
-        run = run_drive(result, config)
-        valid = decide_sequence(config, ValiditySettings(), epochs_for(result), run.outputs)
+    for run, valid in judged:
         after = run.t >= start
         kept = valid & after
         front, rear = run.covered()

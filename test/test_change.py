@@ -13,7 +13,7 @@ import math
 from dataclasses import replace
 
 import numpy as np
-from drives import NOISY_GNSS_R, noisy_late_drop, run_drive, sine_drive, step_change
+from drives import NOISY_GNSS_R, judged_figures, noisy_late_drop, run_drive, sine_drive, step_change
 from helpers import simulate_epochs
 from test_ekf import epoch_list
 from test_validity import SETTINGS, epochs_of
@@ -155,18 +155,15 @@ def _rise_outcome(options: FilterOptions) -> tuple[float, list[float]]:
     Returns the share of the valid epochs after 30 s outside +-2 sigma, and per seed the seconds from
     the rise to the first alarm (inf: none).
     """
-    rise = step_change(0.3, DROP)
     config = EstimatorConfig(options=options)
-    missed, delays = [], []
+    judged, delays = [], []
     for seed in range(8):
-        result = simulate(sine_drive(seed, duration=180.0, stiffness=rise))
+        result = simulate(sine_drive(seed, duration=180.0, stiffness=step_change(0.3, DROP)))
         run = run_drive(result, config)
-        valid = decide_sequence(config, SETTINGS, epochs_of(result), run.outputs) & (run.t >= 30.0)
-        front, rear = run.covered()
-        missed.extend(~(front & rear)[valid])
+        judged.append((run, decide_sequence(config, SETTINGS, epochs_of(result), run.outputs)))
         alarms = run.t[(run.outputs[:, O_CHANGE] > 0.5) & (run.t >= DROP)]
         delays.append(float(alarms[0] - DROP) if len(alarms) else math.inf)
-    return float(np.mean(missed)), delays
+    return judged_figures(judged).missed, delays
 
 
 def test_a_rise_is_seen_sooner_with_the_smaller_shift() -> None:

@@ -15,10 +15,10 @@ import dataclasses
 import functools
 
 import numpy as np
-from drives import LATE_DROP, Run, drift, run_drive, sine_drive
+from drives import LATE_DROP, Run, drift, judged_figures, run_drive, sine_drive
 from test_validity import CONFIG, SETTINGS, epochs_of
 
-from transplanter_ident.config.parameters import FilterOptions
+from transplanter_ident.config.parameters import FilterOptions, ValiditySettings
 from transplanter_ident.ekf.layout import O_CHANGE, O_STATUS, O_UPDATE_F, O_UPDATE_R, StepStatus
 from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.evaluation.validity import decide_sequence, monitor_for, sample_of
@@ -39,16 +39,10 @@ def runs(name: str) -> tuple[tuple[Run, EpochArrays], ...]:
     return tuple(out)
 
 
-def missed_and_valid(name: str, settings) -> tuple[float, float]:  # noqa: ANN001
+def missed_and_valid(name: str, settings: ValiditySettings) -> tuple[float, float]:
     """(share of the valid epochs after 30 s that +-2 sigma misses (Cf or Cr), valid share after 30 s), pooled."""
-    missed, valid_share = [], []
-    for run, epochs in runs(name):
-        valid = decide_sequence(CONFIG, settings, epochs, run.outputs)
-        after = run.t >= 30.0
-        front, rear = run.covered()
-        missed.extend(~(front & rear)[valid & after])
-        valid_share.append(np.mean(valid[after]))
-    return (float(np.mean(missed)) if missed else 0.0), float(np.mean(valid_share))
+    figures = judged_figures((run, decide_sequence(CONFIG, settings, epochs, run.outputs)) for run, epochs in runs(name))
+    return figures.missed, figures.valid
 
 
 def test_a_drifting_stiffness_is_flagged_and_named() -> None:

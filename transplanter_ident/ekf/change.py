@@ -103,10 +103,10 @@ def detect_change(memo, settings, t, dt, nis, u_f, u_r, out):
     llr = min(-math.log(scale) + 0.5 * nis * (1.0 - 1.0 / scale), settings[S_CUSUM_CAP])
     g = max(0.0, memo[M_CUSUM] + llr)
     adapting = t <= memo[M_ADAPT_UNTIL]
-    shifted = shift_alarm(memo, settings, dt, u_f, u_r, out)
-    if adapting or shifted or g > settings[S_CUSUM_THRESHOLD]:  # the catch-up after an alarm is no drift
+    alarm = shift_alarm(memo, settings, dt, u_f, u_r, out) or g > settings[S_CUSUM_THRESHOLD]
+    if adapting or alarm:  # the catch-up after an alarm is no drift
         out[O_UPDATE_F], out[O_UPDATE_R] = 0.0, 0.0
-    if g > settings[S_CUSUM_THRESHOLD] or shifted:  # a new surface: the tire's saturation is measured anew
+    if alarm:  # a new surface: the tire's saturation is measured anew
         memo[M_ADAPT_UNTIL] = t + settings[S_CHANGE_HOLD]
         memo[M_SATURATION_SCORE] = 0.0
         memo[M_SATURATION_INFORMATION] = 0.0

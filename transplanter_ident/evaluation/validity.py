@@ -59,6 +59,7 @@ from transplanter_ident.ekf.layout import (
 )
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
 from transplanter_ident.evaluation.validity_batch import (
+    MIN_DRIFT_UPDATES,
     decide_batch,
     delay_shift,
     delay_shifts,
@@ -68,8 +69,6 @@ from transplanter_ident.evaluation.validity_batch import (
 
 #: s of data between two evaluations of the window checks
 RECHECK = 1.0
-#: fewer stiffness updates in the drift test's span: no verdict
-MIN_DRIFT_UPDATES = 10
 #: statuses whose innovation is a proper one-step prediction error
 PREDICTED = frozenset({StepStatus.UPDATED, StepStatus.NONLINEAR, StepStatus.GATED})
 #: statuses of an epoch whose measurement the filter did not trust
@@ -339,7 +338,7 @@ def decide_sequence(config: EstimatorConfig, settings: ValiditySettings, epochs:
     monitor = monitor_for(config, settings)
     counts = rejected if rejected is not None else [0] * len(epochs)
     valid = decide_batch(settings, monitor.bounds, monitor.lever, RECHECK, epochs, outputs, counts, DISTRUSTED,
-                         monitor.antenna_x, monitor.rear_slip_gain, MIN_DRIFT_UPDATES)
+                         monitor.antenna_x, monitor.rear_slip_gain)
     if valid is not None:
         return valid
     return np.array([monitor.step(sample_of(epochs[i], outputs[i], counts[i])).valid for i in range(len(epochs))],

@@ -39,6 +39,8 @@ from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.jit import entry_kernel
 
 _PREDICTED = (StepStatus.UPDATED, StepStatus.NONLINEAR, StepStatus.GATED)
+#: fewer stiffness updates in the drift test's span: no verdict (ValidityMonitor._drift, _drifting)
+MIN_DRIFT_UPDATES = 10
 
 
 def delay_shows(delay, std, sigmas: float):  # noqa: ANN001, ANN201 - floats or arrays alike
@@ -76,14 +78,13 @@ def steady_antenna_vy(lever: float, rear_slip_gain: float, speed: float, cr: flo
 def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever: float, recheck: float,
                  epochs: EpochArrays, outputs: np.ndarray, rejected: Sequence[int],
                  distrusted: Iterable[StepStatus], antenna_x: float = 0.0,
-                 rear_slip_gain: float = 0.0, min_drift_updates: int = 10) -> np.ndarray | None:
+                 rear_slip_gain: float = 0.0) -> np.ndarray | None:
     """The monitor's ``valid`` for every epoch, or None when the times do not strictly increase.
 
     ``rejected``: per epoch, the samples rejected since the previous one (Sample.rejected);
     ``distrusted``: the statuses that make an epoch suspect (validity.DISTRUSTED); ``antenna_x``: the
     antenna ahead of the CG (the sideslip check takes vy at the CG, ValidityMonitor.antenna_x);
-    ``rear_slip_gain``: the course-over-ground check's (:func:`steady_antenna_vy`, ValidityMonitor.rear_slip_gain);
-    ``min_drift_updates``: the drift test's (validity.MIN_DRIFT_UPDATES).
+    ``rear_slip_gain``: the course-over-ground check's (:func:`steady_antenna_vy`, ValidityMonitor.rear_slip_gain).
     """
     t = np.ascontiguousarray(epochs.t, dtype=np.float64)
     n = len(t)
@@ -132,7 +133,7 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
     limits = np.array([s.window, recheck, s.max_sideslip, 0.05 ** 2, s.course_ratio,
                        s.max_nonlinear_fraction, s.min_steering_std, s.min_yaw_rate_std, s.nis_quantile_sigmas,
                        s.max_autocorrelation, s.hold_on, s.hold_off, s.max_suspect_fraction, s.drift_window,
-                       s.max_drift_sigmas, min_drift_updates])
+                       s.max_drift_sigmas, MIN_DRIFT_UPDATES])
     updates = np.ascontiguousarray(outputs[:, [O_UPDATE_F, O_UPDATE_R]], dtype=np.float64)
     return _decide_kernel(t, status == int(StepStatus.NONLINEAR), hard, soft, np.ascontiguousarray(epochs.steering),
                           r, plaus, sideslip[plaus], rate, r_sq, vy_sq, steady_sq, consist, nis[consist],
