@@ -2,7 +2,8 @@
 
 Compared on the drives of test_validity.py (clean, stiffness drop, the paper's step, unconfigured
 delays, course-over-ground heading, ENU declared NED), a drifting stiffness, and on outputs perturbed
-at random (statuses, NaN NIS, spread, bounds, stiffness updates and alarms) under random validity
+at random (statuses, NaN NIS, spread, bounds, stiffness updates and alarms, a measured tire relaxation) under
+random validity
 settings, so every check and the hysteresis switch.
 """
 
@@ -23,6 +24,10 @@ from transplanter_ident.ekf.layout import (
     O_CHANGE,
     O_CR_STD,
     O_NIS_CONFIGURED,
+    O_RELAXATION,
+    O_RELAXATION_SENS_F,
+    O_RELAXATION_SENS_R,
+    O_RELAXATION_STD,
     O_STATUS,
     O_UPDATE_F,
     O_UPDATE_R,
@@ -107,14 +112,14 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
     rng = np.random.default_rng(11)
     epochs, clean = _drive("clean", 2)
     statuses = np.array([int(s) for s in StepStatus])
-    flips = drifts = 0
+    flips = drifts = relaxes = 0
     for case in range(100):
         outputs = clean.copy()
         n = len(outputs)
         for _ in range(int(rng.integers(0, 6))):
             start = int(rng.integers(0, n))
             stop = min(n, start + int(rng.integers(1, 300)))
-            what = int(rng.integers(0, 5))
+            what = int(rng.integers(0, 6))
             if what == 0:
                 outputs[start:stop, O_STATUS] = rng.choice(statuses, stop - start)
             elif what == 1:
@@ -128,6 +133,11 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
                 outputs[int(rng.integers(start, stop)), O_CHANGE] = 1.0
             elif what == 4:
                 outputs[start:stop, O_CF] = CONFIG.options.stiffness_bounds[1]
+            elif what == 5:  # a measured relaxation length of either sign, some rows not measured yet
+                outputs[start:stop, O_RELAXATION] = rng.normal(rng.choice((-0.2, 0.2)), 0.1, stop - start)
+                outputs[start:stop, O_RELAXATION_STD] = rng.uniform(0.03, 0.15, stop - start) * (
+                    rng.random(stop - start) < 0.9)
+                outputs[start:stop, [O_RELAXATION_SENS_F, O_RELAXATION_SENS_R]] = rng.normal(0.0, 0.5, (stop - start, 2))
         settings = dataclasses.replace(
             SETTINGS, window=float(rng.choice((2.0, 5.0, 10.0))), hold_on=float(rng.choice((0.2, 1.0, 3.0))),
             hold_off=float(rng.choice((0.1, 0.5, 1.0))), max_autocorrelation=float(rng.choice((0.05, 0.3))),
@@ -135,7 +145,8 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
             max_sideslip=float(rng.choice((0.02, 0.35))), course_ratio=float(rng.choice((0.2, 5.0))),
             max_suspect_fraction=float(rng.choice((0.05, 0.5))), max_delay_sigmas=float(rng.choice((1.0, 3.0))),
             max_delay_shift=float(rng.choice((0.3, 1.5, 100.0))), drift_window=float(rng.choice((0.0, 20.0, 90.0))),
-            max_drift_sigmas=float(rng.choice((1.0, 2.5))))
+            max_drift_sigmas=float(rng.choice((1.0, 2.5))), max_relaxation_sigmas=float(rng.choice((1.0, 3.0))),
+            max_relaxation_shift=float(rng.choice((0.3, 1.0, 100.0))))
         rejected = [0] * n
         for _ in range(int(rng.integers(0, 4))):
             start = int(rng.integers(0, n))
@@ -149,8 +160,11 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
         flips += int(np.count_nonzero(np.diff(expected.astype(int))))
         drifts += not np.array_equal(expected, monitor_decisions(dataclasses.replace(settings, drift_window=0.0), epochs,
                                                                  outputs, rejected))
+        relaxes += not np.array_equal(expected, monitor_decisions(
+            dataclasses.replace(settings, max_relaxation_sigmas=100.0, max_relaxation_shift=100.0), epochs, outputs,
+            rejected))
     assert flips > 50  # the cases switch valid on and off, not one constant answer
-    assert drifts >= 3  # and the drift test decided some of them
+    assert drifts >= 3 and relaxes >= 3  # and the drift and relaxation tests decided some of them
 
 
 def test_times_that_go_back_use_the_monitor() -> None:

@@ -78,7 +78,7 @@ class FilterOptions:
     min_friction: float = 0.3  # lowest friction expected (wet field): the stiffness std holds the bias there; 0 off
     saturation_correction: bool = False  # report Cf, Cr corrected by that bias (min_friction = the field's, if known)
     saturation_prior: float = 0.5  # 1-sigma prior of the saturation the innovations measure (1: min_friction); 0 off
-    saturation_memory: float = 300.0  # s, time constant of that measure
+    saturation_memory: float = 300.0  # s, time constant of that measure and of the relaxation length's
     delay_uncertainty: float = 0.0  # s, 1-sigma of the GNSS delay left out of gnss.delay: the std holds its bias
     steering_scale_uncertainty: float = 0.0  # relative 1-sigma of the steering gain left out of vehicle.steering_scale
     yaw_inertia_uncertainty: float = 0.0  # relative 1-sigma of the yaw inertia left out of vehicle.iz
@@ -198,6 +198,8 @@ class ValiditySettings:
     max_suspect_fraction: float = 0.1  # of the window's epochs after a rejected sample, or gated/rolled back
     max_delay_sigmas: float = 3.0  # an unconfigured GNSS delay this many std from 0 (the filter's measure) fails
     max_delay_shift: float = 1.5  # the Cf or Cr shift the measured delay implies (lower 1-sigma), in reported std
+    max_relaxation_sigmas: float = 3.0  # a tire relaxation length left out, this many std from 0 (the filter's measure)
+    max_relaxation_shift: float = 1.5  # the Cf or Cr shift the measured relaxation implies (lower 1-sigma), in std
     drift_window: float = 90.0  # s of stiffness updates (since the last change alarm) the drift test sums; 0: off
     max_drift_sigmas: float = 2.5  # their normalised sum beyond +-this x sqrt(n): the stiffness drifts, the band lags
 
@@ -205,7 +207,8 @@ class ValiditySettings:
         check_fields(self, "validity", positive=("window", "max_rel_std", "nis_quantile_sigmas",
                                                  "max_autocorrelation", "max_sideslip", "course_ratio",
                                                  "max_nonlinear_fraction", "max_suspect_fraction",
-                                                 "max_delay_sigmas", "max_delay_shift", "max_drift_sigmas"),
+                                                 "max_delay_sigmas", "max_delay_shift", "max_relaxation_sigmas",
+                                                 "max_relaxation_shift", "max_drift_sigmas"),
                      non_negative=("min_steering_std", "min_yaw_rate_std", "hold_on", "hold_off", "drift_window"))
 
 

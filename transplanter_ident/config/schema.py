@@ -252,8 +252,9 @@ SCHEMA: tuple[Param, ...] = (
            "of a tire at ekf.min_friction (a = 1 there, 0 on a linear tire; /diagnostics tire_saturation): Cf, Cr "
            "are corrected by a's posterior times that bias, with a prior N(0, this^2) (0.5: a field as slippery as "
            "ekf.min_friction is a 2-sigma event); the std keeps the bias the data do not pin; 0: off", 0.0, 10.0),
-    _float("ekf.saturation_memory", 300.0, "s", "time constant of that measure (a surface change restarts it)",
-           1.0, 1.0e5),
+    _float("ekf.saturation_memory", 300.0, "s", "time constant of the tires' two measures: that one (a surface "
+           "change restarts it) and of a relaxation length left out of vehicle.relaxation_length (/diagnostics "
+           "relaxation_estimate_m)", 1.0, 1.0e5),
     _float("ekf.delay_uncertainty", 0.0, "s", "1-sigma of the GNSS timing error left after gnss.delay (a driver "
            "stamping on arrival: its latency's spread): the reported Cf, Cr std hold the bias it causes (~2 % per "
            "ms at 2 m/s; /diagnostics delay_sensitivity_per_ms); 0: off", 0.0, 1.0),
@@ -327,6 +328,12 @@ SCHEMA: tuple[Param, ...] = (
            "lower 1-sigma bound |delay| - std times the estimate's sensitivity per second of delay), in the "
            "estimate's reported std, above which the estimate is not valid: a delay the data show but cannot yet "
            "pin moves the stiffness beyond its band", 0.1, 100.0, read_only=False),
+    _float("validity.max_relaxation_sigmas", 3.0, "", "a tire relaxation length left out of "
+           "vehicle.relaxation_length, as the filter measures it from its innovations (/diagnostics "
+           "relaxation_estimate_m), this many std from zero makes the estimate invalid", 0.5, 100.0, read_only=False),
+    _float("validity.max_relaxation_shift", 1.5, "", "the shift of Cf or Cr that the measured relaxation length "
+           "implies (its lower 1-sigma bound times the estimate's sensitivity per metre), in the estimate's "
+           "reported std, above which the estimate is not valid", 0.1, 100.0, read_only=False),
     _float("validity.max_autocorrelation", 0.3, "", "lag-1 autocorrelation of the whitened vy innovation above "
            "which the filter is inconsistent (an unconfigured delay)", 0.01, 1.0, read_only=False),
     _float("validity.max_sideslip", 0.35, "rad", "median |vy/vx| above which GNSS velocity and heading disagree "

@@ -39,6 +39,7 @@ from transplanter_ident.ekf.layout import (
     M_NOISE_SPAN_SECOND,
     M_NOISE_SPAN_VY,
     M_NOISE_VY,
+    M_RELAXATION_BIAS,
     M_SATURATION_INFORMATION,
     M_SATURATION_SCORE,
     M_SCALE_BIAS,
@@ -261,6 +262,7 @@ def forget_motion_bias(memo, nd):
         memo[M_DELAY_BIAS + i] = 0.0
         memo[M_SCALE_BIAS + i] = 0.0
         memo[M_INERTIA_BIAS + i] = 0.0
+        memo[M_RELAXATION_BIAS + i] = 0.0
 
 
 @inline_kernel

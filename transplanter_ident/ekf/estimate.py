@@ -26,6 +26,10 @@ from transplanter_ident.ekf.layout import (
     O_OFFSET_STD,
     O_R,
     O_R_MODEL,
+    O_RELAXATION,
+    O_RELAXATION_SENS_F,
+    O_RELAXATION_SENS_R,
+    O_RELAXATION_STD,
     O_S00,
     O_S01,
     O_S11,
@@ -90,6 +94,16 @@ class Estimate:
     def delay_estimate(self) -> tuple[float, float]:
         """(s, std s) of the GNSS delay left out of gnss.delay, as the innovations show it (std 0: not yet)."""
         return self._pair(O_DELAY_ESTIMATE, O_DELAY_ESTIMATE_STD, 0.0)
+
+    @property
+    def relaxation_estimate(self) -> tuple[float, float]:
+        """(m, std m) of the tire relaxation length left out of vehicle.relaxation_length (std 0: not yet)."""
+        return self._pair(O_RELAXATION, O_RELAXATION_STD, 0.0)
+
+    @property
+    def relaxation_sensitivity(self) -> tuple[float, float]:
+        """Relative error of Cf, Cr per metre of tire relaxation length left out (relaxation_signature.py)."""
+        return self._pair(O_RELAXATION_SENS_F, O_RELAXATION_SENS_R, 0.0)
 
     @property
     def saturation(self) -> tuple[float, float]:

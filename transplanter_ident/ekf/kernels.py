@@ -47,6 +47,7 @@ from transplanter_ident.ekf.adaptation import (
     propagate_tire_bias,
     saturation_share,
     score_model_errors,
+    score_signature,
     signature_estimate,
 )
 from transplanter_ident.ekf.change import detect_change, normalised_update
@@ -67,6 +68,9 @@ from transplanter_ident.ekf.layout import (
     M_NOISE_SPAN_SECOND,
     M_NOISE_SPAN_VY,
     M_NOISE_VY,
+    M_RELAXATION_BIAS,
+    M_RELAXATION_INFORMATION,
+    M_RELAXATION_SCORE,
     M_SATURATION_INFORMATION,
     M_SATURATION_SCORE,
     M_SCALE_BIAS,
@@ -95,6 +99,9 @@ from transplanter_ident.ekf.layout import (
     O_OFFSET_STD,
     O_R,
     O_R_MODEL,
+    O_RELAXATION,
+    O_RELAXATION_SENS_F,
+    O_RELAXATION_STD,
     O_S00,
     O_S01,
     O_S11,
@@ -116,6 +123,7 @@ from transplanter_ident.ekf.layout import (
     S_MAX_GATED,
     S_MAX_INTERVAL,
     S_MIN_SPEED,
+    S_SATURATION_MEMORY,
     S_SPEED_NOISE,
     V_BACKUP_CHANGE,
     V_BACKUP_MODEL,
@@ -133,6 +141,7 @@ from transplanter_ident.ekf.layout import (
 )
 from transplanter_ident.ekf.prediction import make_prediction
 from transplanter_ident.ekf.recovery import make_recovery
+from transplanter_ident.ekf.relaxation_signature import propagate_relaxation_bias, slip_deficits
 from transplanter_ident.ekf.sequence import innovation_covariance, normalized_innovation_squared
 from transplanter_ident.ekf.update import make_update
 from transplanter_ident.epochs.frames import wrap_angle
@@ -180,6 +189,7 @@ def make_kernels(heading, lagged=False):
             out[O_TIRE_BIAS_F + k] = dc * bias / c if c != 0.0 else 0.0
             out[O_DELAY_SENS_F + k] = -dc * memo[M_DELAY_BIAS + nf + k] / c if c != 0.0 else 0.0  # estimate - truth
             out[O_SCALE_SENS_F + k] = -dc * memo[M_SCALE_BIAS + nf + k] / c if c != 0.0 else 0.0
+            out[O_RELAXATION_SENS_F + k] = -dc * memo[M_RELAXATION_BIAS + nf + k] / c if c != 0.0 else 0.0
         out[O_OFFSET] = x[nb]
         out[O_OFFSET_STD] = math.sqrt(max(p[nb, nb], 0.0))
         denominator = math.sqrt(max(p[nf, nf], 0.0) * max(p[nr, nr], 0.0))
@@ -189,6 +199,8 @@ def make_kernels(heading, lagged=False):
         out[O_DELAY_ESTIMATE], out[O_DELAY_ESTIMATE_STD] = signature_estimate(memo, M_DELAY_SCORE, M_DELAY_INFORMATION)
         out[O_SATURATION], out[O_SATURATION_STD] = signature_estimate(memo, M_SATURATION_SCORE,
                                                                       M_SATURATION_INFORMATION)
+        out[O_RELAXATION], out[O_RELAXATION_STD] = signature_estimate(memo, M_RELAXATION_SCORE,
+                                                                      M_RELAXATION_INFORMATION)
         out[O_NOISE_SCALE_VY] = noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY)
         out[O_NOISE_SCALE_SECOND] = noise_scale(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND)
 
@@ -228,8 +240,8 @@ def make_kernels(heading, lagged=False):
         6. Joseph update (motion only outside the linear tire range); the change tests (change.py); clamp the stiffness.
         7. Roll back if anything became non-finite; re-initialise if that lasts (:mod:`.recovery`); else
            propagate the tire's, the delay's and the steering gain's biases, keep the speed sample's covariance
-           with the state (update.keep_speed_cross), learn R, and score the delay
-           and the tires' saturation from the innovations (the saturation's share corrects Cf, Cr).
+           with the state (update.keep_speed_cross), learn R, and score the delay, the tires' saturation and a
+           relaxation length left out from the innovations (the saturation's share corrects Cf, Cr).
         """
         out[:] = 0.0
         # 1.
@@ -286,6 +298,8 @@ def make_kernels(heading, lagged=False):
         predict_inertia_gain(x, vehicle, settings, dt, speed, steering, steering_rate, relaxation, ws, False)
         predict_n(x, model, vehicle, settings, dt, speed, steering, steering_rate, relaxation, ws)
         predict_inertia_gain(x, vehicle, settings, dt, speed, steering, steering_rate, relaxation, ws, True)
+        eps_f, eps_r = slip_deficits(ws[W_VEC, V_BACKUP_MODEL], model, vehicle, dt, speed, steering_rate, nd - lag,
+                                     relaxation > 0.0, relaxation)
         r_model = (model[X_PSI] - psi_model_before) / dt if heading else model[X_R]
         vy_model = model[X_VY]
         adapting = t <= memo[M_ADAPT_UNTIL]
@@ -351,11 +365,14 @@ def make_kernels(heading, lagged=False):
         g0, g1 = propagate_delay_bias(memo, n, nd, h1, antenna_x, updated, steering_rate, ws)
         propagate_scale_bias(memo, settings, n, nd, h1, antenna_x, updated, steering, ws)
         propagate_inertia_bias(memo, settings, n, nd, h1, antenna_x, updated, ws)
+        lag0, _ = propagate_relaxation_bias(memo, n, nd, nb, h1, antenna_x, updated, speed, eps_f, eps_r, ws)
         keep_speed_cross(memo, speed_variance, antenna_x, updated, ws)
         if updated:
             learn_noise_scales(memo, settings, dt, e0, e1, s00 - r0, s11 - r1, r0, r1, r_noise[Z_VY],
                                r_noise[Z_SECOND])
             score_model_errors(memo, settings, dt, g0, g1, tire0, tire1, e0, e1, s00, s01, s11, det)
+            score_signature(memo, M_RELAXATION_SCORE, M_RELAXATION_INFORMATION, settings[S_SATURATION_MEMORY], dt, lag0,
+                            0.0, e0, 0.0, s00, 0.0, 1.0, s00)  # vy alone (relaxation_signature.py)
         write_outputs(x, p, memo, settings, status, r_model, vy_model, out)
         return status
 

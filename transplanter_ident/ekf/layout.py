@@ -68,7 +68,10 @@ O_SCALE_SENS_F, O_SCALE_SENS_R = 35, 36  # relative error of Cf, Cr per unit (re
 # the stiffness updates, each normalised by its std and decorrelated (change.decorrelated; 0: no update, or a
 # change alarm and its hold): N(0, 1) while the stiffness holds still, one way while it drifts (validity's drift test)
 O_UPDATE_F, O_UPDATE_R = 37, 38
-N_OUTPUTS = 39
+# m: the tire relaxation length left out of vehicle.relaxation_length as the innovations show it (std 0: none yet),
+# and the relative error of Cf, Cr per metre of it (relaxation_signature.py)
+O_RELAXATION, O_RELAXATION_STD, O_RELAXATION_SENS_F, O_RELAXATION_SENS_R = 39, 40, 41, 42
+N_OUTPUTS = 43
 
 # memo vector
 M_T_PREV, M_INITIALISED, M_GATED, M_CUSUM, M_ADAPT_UNTIL, M_DIVERGED = 0, 1, 2, 3, 4, 5
@@ -95,7 +98,11 @@ N_SHIFT = 4
 M_SHIFT_POWER, M_SHIFT_LAG, M_SHIFT_LAST = M_SHIFT + N_SHIFT, M_SHIFT + N_SHIFT + 2, M_SHIFT + N_SHIFT + 4
 #: memo[M_INERTIA_BIAS + i]: the bias of state i per unit of ln Iz left out of vehicle.iz (adaptation.py)
 M_INERTIA_BIAS = M_SHIFT_LAST + 2
-N_MEMO = M_INERTIA_BIAS + MAX_STATES
+#: memo[M_RELAXATION_BIAS + i]: the bias of state i per metre of tire relaxation left out (relaxation_signature.py),
+#: then the online measure of that length (adaptation.score_signature): score and information
+M_RELAXATION_BIAS = M_INERTIA_BIAS + MAX_STATES
+M_RELAXATION_SCORE, M_RELAXATION_INFORMATION = M_RELAXATION_BIAS + MAX_STATES, M_RELAXATION_BIAS + MAX_STATES + 1
+N_MEMO = M_RELAXATION_INFORMATION + 1
 
 # the open-loop model's state: the filter's motion states and slip lags, [vy, r, psi, d_f, d_r] or [vy, r, d_f, d_r]
 N_MODEL = N_MOTION_HEADING + N_LAG

@@ -38,6 +38,8 @@ def convergence_report(node: str, estimate: Estimate | None, updates: int, limit
               ("noise_factors", "{:.3f} {:.3f}".format(*estimate.noise_factors)),
               ("delay_sensitivity_per_ms", "{:+.4f} {:+.4f}".format(*(1.0e-3 * v for v in estimate.delay_sensitivity))),
               ("delay_estimate_ms", "{:+.1f} {:.1f}".format(*(1.0e3 * v for v in estimate.delay_estimate))),
+              ("relaxation_estimate_m", "{:+.3f} {:.3f}".format(*estimate.relaxation_estimate)),
+              ("relaxation_sensitivity_per_cm", "{:+.4f} {:+.4f}".format(*(0.01 * v for v in estimate.relaxation_sensitivity))),
               ("scale_sensitivity_per_percent", "{:+.4f} {:+.4f}".format(*(0.01 * v for v in estimate.scale_sensitivity))))
     if converged:
         return HealthReport(name, OK, f"converged: Cf {cf:.0f} +- {100 * rel_f:.1f} %, "

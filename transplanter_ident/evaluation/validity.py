@@ -51,6 +51,10 @@ from transplanter_ident.ekf.layout import (
     O_DELAY_SENS_R,
     O_E0,
     O_NIS_CONFIGURED,
+    O_RELAXATION,
+    O_RELAXATION_SENS_F,
+    O_RELAXATION_SENS_R,
+    O_RELAXATION_STD,
     O_S00,
     O_STATUS,
     O_UPDATE_F,
@@ -61,9 +65,7 @@ from transplanter_ident.epochs.epoch import Epoch, EpochArrays
 from transplanter_ident.evaluation.validity_batch import (
     MIN_DRIFT_UPDATES,
     decide_batch,
-    delay_shift,
-    delay_shifts,
-    delay_shows,
+    measure_verdict,
     steady_antenna_vy,
 )
 
@@ -97,6 +99,9 @@ class Sample:
     delay_std: float = 0.0  # s, its std (0: not measured yet)
     delay_sensitivity: tuple[float, float] = (0.0, 0.0)  # relative error of Cf, Cr per s of delay (O_DELAY_SENS_F/R)
     updates: tuple[float, float] = (0.0, 0.0)  # the normalised stiffness updates (O_UPDATE_F/R; 0: none)
+    relaxation: float = 0.0  # m, the tire relaxation length left out as the filter measures it (O_RELAXATION)
+    relaxation_std: float = 0.0  # m, its std (0: not measured yet)
+    relaxation_sensitivity: tuple[float, float] = (0.0, 0.0)  # relative error of Cf, Cr per m (O_RELAXATION_SENS_F/R)
     change: bool = False  # a surface-change alarm at this epoch (O_CHANGE): the drift test starts again
 
 
@@ -182,16 +187,22 @@ class ValidityMonitor:
         worst = max(relative)
         if not worst <= self.settings.max_rel_std:
             reasons.append(f"not converged (relative 1-sigma {worst:.3f} > {self.settings.max_rel_std:g})")
-        if delay_shows(sample.delay, sample.delay_std, self.settings.max_delay_sigmas):
-            reasons.append(f"the innovations show a GNSS delay of {1e3 * sample.delay:+.0f} +- {1e3 * sample.delay_std:.0f}"
-                           " ms not in gnss.delay (the stiffness moves ~2 % per ms): set gnss.delay, or tuner "
-                           "--estimate-delay")
-        elif any(delay_shifts(sample.delay, sample.delay_std, sensitivity, rel_std, self.settings.max_delay_shift)
-                 for sensitivity, rel_std in zip(sample.delay_sensitivity, relative, strict=True)):
-            shift = max(float(delay_shift(sample.delay, sample.delay_std, s)) for s in sample.delay_sensitivity)
-            reasons.append(f"the innovations show a GNSS delay of {1e3 * sample.delay:+.0f} +- "
-                           f"{1e3 * sample.delay_std:.0f} ms, which moves the stiffness by {100 * shift:.0f} % or more, "
-                           "beyond its band: set gnss.delay, or tuner --estimate-delay")
+        delay = measure_verdict(sample.delay, sample.delay_std, sample.delay_sensitivity, relative,
+                                 self.settings.max_delay_sigmas, self.settings.max_delay_shift)
+        if delay is not None:
+            shown = f"the innovations show a GNSS delay of {1e3 * sample.delay:+.0f} +- {1e3 * sample.delay_std:.0f} ms"
+            reasons.append(f"{shown} not in gnss.delay (the stiffness moves ~2 % per ms): set gnss.delay, or tuner "
+                           "--estimate-delay" if delay == 0.0 else
+                           f"{shown}, which moves the stiffness by {100 * delay:.0f} % or more, beyond its band: set "
+                           "gnss.delay, or tuner --estimate-delay")
+        lag = max(sample.relaxation, 0.0)  # a tire's force lags its slip, never leads it
+        relaxation = measure_verdict(lag, sample.relaxation_std, sample.relaxation_sensitivity, relative,
+                                     self.settings.max_relaxation_sigmas, self.settings.max_relaxation_shift)
+        if relaxation is not None:
+            moved = "" if relaxation == 0.0 else f", which moves the stiffness by {100 * relaxation:.0f} % or more"
+            reasons.append(f"the innovations show the tire force lagging the slip over {sample.relaxation:.2f} +- "
+                           f"{sample.relaxation_std:.2f} m of travel more than vehicle.relaxation_length{moved}: set "
+                           "vehicle.relaxation_length (the tire's relaxation length, of the order of its radius)")
         return reasons
 
     def _plausibility(self, window: list[Sample]) -> list[str]:
@@ -317,7 +328,9 @@ def sample_of(epoch: Epoch, row: np.ndarray, rejected: int = 0) -> Sample:
                   whitened_vy=float(row[O_E0]) / math.sqrt(s00) if s00 > 0.0 else 0.0, rejected=int(rejected),
                   delay=float(row[O_DELAY_ESTIMATE]), delay_std=float(row[O_DELAY_ESTIMATE_STD]),
                   delay_sensitivity=(float(row[O_DELAY_SENS_F]), float(row[O_DELAY_SENS_R])),
-                  updates=(float(row[O_UPDATE_F]), float(row[O_UPDATE_R])), change=bool(row[O_CHANGE] > 0.0))
+                  updates=(float(row[O_UPDATE_F]), float(row[O_UPDATE_R])), change=bool(row[O_CHANGE] > 0.0),
+                  relaxation=float(row[O_RELAXATION]), relaxation_std=float(row[O_RELAXATION_STD]),
+                  relaxation_sensitivity=(float(row[O_RELAXATION_SENS_F]), float(row[O_RELAXATION_SENS_R])))
 
 
 def monitor_for(config: EstimatorConfig, settings: ValiditySettings) -> ValidityMonitor:
