@@ -187,12 +187,15 @@ def validity_figures(results: Iterable[SimResult], config: EstimatorConfig,
 
 
 def pooled_validity_figures(drives: Iterable[tuple[SimResult, EstimatorConfig]],
-                            epochs_for: Callable[[SimResult], EpochArrays], start: float = 30.0) -> ValidityFigures:
-    """:func:`validity_figures` of drives each filtered with its own configuration."""
+                            epochs_for: Callable[[SimResult], EpochArrays], start: float = 30.0,
+                            settings: ValiditySettings | None = None) -> ValidityFigures:
+    """:func:`validity_figures` of drives each filtered with its own configuration (validity: the defaults)."""
+    settings = settings or ValiditySettings()
+
     def judged() -> Iterable[tuple[Run, np.ndarray]]:
         for result, config in drives:
             run = run_drive(result, config)
-            yield run, decide_sequence(config, ValiditySettings(), epochs_for(result), run.outputs)
+            yield run, decide_sequence(config, settings, epochs_for(result), run.outputs)
 
     return judged_figures(judged(), start)
 

@@ -1,7 +1,8 @@
 """Relaxing tires (``vehicle.relaxation_length``): the slip lags in the model, and what they buy.
 
 A real tire builds its lateral force over its relaxation length. Left out of the model, 0.3 m at
-2 m/s biases Cf by about +12 % while the estimate stays valid (README, the robustness table). With
+2 m/s biases Cf by about +12 %, and only the filter's measure of the lag makes the estimate invalid
+(test_relaxation_measure.py; README, the robustness table). With
 the length configured, the filter carries each axle's slip lag d (force C (alpha - d), d' = alpha' -
 (vx / sigma) d). Checked here: the compiled discretisation against scipy's expm of the obvious
 matrix (E and its derivatives), and the estimate against the truth on relaxing drives of both
@@ -19,7 +20,7 @@ from independent_sim import independent_drive
 from scipy.linalg import expm
 from test_validity import epochs_of
 
-from transplanter_ident.config.parameters import EstimatorConfig, VehicleParams
+from transplanter_ident.config.parameters import EstimatorConfig, ValiditySettings, VehicleParams
 from transplanter_ident.ekf.joint_ekf import FilterArrays, JointEKF
 from transplanter_ident.ekf.layout import (
     EXACT,
@@ -139,12 +140,14 @@ def test_a_configured_relaxation_length_makes_relaxing_drives_right() -> None:
 
     Configured: valid in >= 70 % of the epochs (measured 94 %), <= 5 % of those outside +-2 sigma (0),
     final |error| median <= 3 % (1.0 %) and worst <= 6 % (3.4 %). Not configured (seeds 0-2, so that
-    this test can fail): >= 50 % of the valid epochs outside +-2 sigma (measured 82 % over seeds 0-5).
+    this test can fail), and without the validity's relaxation check (test_relaxation_measure.py): >= 50 %
+    of the valid epochs outside +-2 sigma (measured 82 % over seeds 0-5).
     """
     told = pooled_validity_figures(relaxing_drives(0.3), epochs_of)
     assert told.valid >= 0.7 and told.missed <= 0.05
     assert np.median(told.finals) <= 0.03 and max(told.finals) <= 0.06
-    untold = pooled_validity_figures(relaxing_drives(0.0, range(3)), epochs_of)
+    unchecked = ValiditySettings(max_relaxation_sigmas=100.0, max_relaxation_shift=100.0)
+    untold = pooled_validity_figures(relaxing_drives(0.0, range(3)), epochs_of, settings=unchecked)
     assert untold.valid > 0.0 and untold.missed >= 0.5
 
 

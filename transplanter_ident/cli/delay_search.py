@@ -16,6 +16,9 @@ the timing error it may leave is then in the reported Cf, Cr std.
 ``--estimate-steering-scale`` jointly, :mod:`transplanter_ident.tuning.scale_and_inertia`) on the same
 epochs; with ``nll`` its std goes into ``ekf.yaw_inertia_uncertainty`` (:func:`inertia_calibration`).
 
+``--estimate-relaxation-length`` last finds ``vehicle.relaxation_length`` from the filter's own measure of
+it (:mod:`transplanter_ident.tuning.relaxation`), with the constants found before.
+
 ``--estimate-steering-scale`` then finds ``vehicle.steering_scale`` on those epochs
 (:mod:`transplanter_ident.tuning.steering_scale`; the (bag, scale) pairs of a grid in parallel) and
 hands on the epochs at the estimated scale, cached under the parameters with it; with ``nll`` its
@@ -45,6 +48,7 @@ from transplanter_ident.tuning.delay import (
 )
 from transplanter_ident.tuning.factor_search import FactorEstimate
 from transplanter_ident.tuning.parallel import Backend
+from transplanter_ident.tuning.relaxation import estimate_relaxation_length, with_relaxation_length
 from transplanter_ident.tuning.scale_and_inertia import (
     LOCATING_OBJECTIVE,
     pooled_pair_objective,
@@ -188,11 +192,12 @@ def estimate_bag_steering_scale(decoded: Sequence[Any], params: EstimatorParams,
 
 def calibrate_vehicle(decoded: Sequence[Any], params: EstimatorParams, backend: Backend,
                       estimated: dict[str, tuple[float, str]], *, objective: str, steering_scale: bool,
-                      yaw_inertia: bool, tune_stiffness_noise: bool = False,
+                      yaw_inertia: bool, relaxation: bool = False, tune_stiffness_noise: bool = False,
                       cache: Path | None = None) -> tuple[EstimatorParams, list[Any]]:
     """``--estimate-steering-scale`` and ``--estimate-yaw-inertia`` (both: jointly) on the epochs at the delay.
 
-    Adds the keys to write to ``estimated``; returns the parameters and the bags' epochs at the estimates.
+    Then ``--estimate-relaxation-length`` (``relaxation``) with those constants. Adds the keys to write to
+    ``estimated``; returns the parameters and the bags' epochs at the estimates.
     """
     inertia = None
     shown = LOCATING_OBJECTIVE if steering_scale and yaw_inertia else objective  # the joint estimate: eq. 21's minimum
@@ -210,6 +215,15 @@ def calibrate_vehicle(decoded: Sequence[Any], params: EstimatorParams, backend: 
         params = replace(params, config=with_yaw_inertia(params.config, inertia.value))
     if inertia is not None:
         estimated.update(inertia_calibration(inertia, params, shown))
+    if relaxation:
+        length = estimate_relaxation_length([item.epochs for item in decoded], params.config, backend.map)
+        print(f"tuner: {length.format()}", file=sys.stderr, flush=True)
+        params = replace(params, config=with_relaxation_length(params.config, length.value))
+        estimated["vehicle.relaxation_length"] = (length.value, length.format())
+        if math.isfinite(length.std):
+            estimated.update(held_uncertainty("ekf.relaxation_uncertainty", length.std,
+                                              params.config.options.relaxation_uncertainty, 2.0, "the estimated length",
+                                              lambda v: f"{v:.3f} m"))
     return params, list(decoded)
 
 

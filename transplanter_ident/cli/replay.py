@@ -4,8 +4,9 @@ The bag is streamed once (:func:`transplanter_ident.bag_io.read_bag`): the input
 through the node's :class:`~transplanter_ident.measurements.EpochAssembler` into epochs, and the
 filter core (:func:`transplanter_ident.ekf.run_sequence`) runs over them. Then replay
 
-* prints the Table 2 row (max and mean |model output - measurement| of vy and r) and the final
-  identified stiffness with its 1-sigma;
+* prints the Table 2 row (max and mean |model output - measurement| of vy and r), the final
+  identified stiffness with its 1-sigma, and the GNSS delay and tire relaxation left out of the
+  configuration as the filter's innovations show them;
 * on a simulated bag (``/sim/cornering_stiffness``), prints the final and mean relative
   stiffness error against the truth sampled at the epoch times;
 * prints the rejected samples, counted by reason;
@@ -120,8 +121,9 @@ def _run(args: argparse.Namespace) -> int:
 
     from transplanter_ident.bags import read_bag, summarize_rejections
     from transplanter_ident.config.params_file import parameter_value
-    from transplanter_ident.ekf.joint_ekf import run_sequence
+    from transplanter_ident.ekf.joint_ekf import Estimate, run_sequence
     from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD, O_OFFSET
+    from transplanter_ident.evaluation.convergence_report import model_errors_line
     from transplanter_ident.evaluation.cramer_rao import final_bound_line
     from transplanter_ident.evaluation.metrics import format_table2, propagated, stiffness_error, table2_row
     from transplanter_ident.evaluation.validity import decide_sequence
@@ -149,6 +151,7 @@ def _run(args: argparse.Namespace) -> int:
           f"{math.degrees(last[O_OFFSET]):+.3f} deg; {'valid' if len(valid) and valid[-1] else 'NOT valid'} "
           f"(valid in {100 * float(np.mean(valid)) if len(valid) else 0.0:.0f} % of epochs)")
     print(final_bound_line(params.config, epochs, last))
+    print(model_errors_line(Estimate.from_row(float(epochs.t[-1]), last), params.config.vehicle.relaxation_length))
     if data.truth is not None:
         true_f, true_r = data.truth.at(epochs.t)
         err = stiffness_error(outputs, true_f, true_r)

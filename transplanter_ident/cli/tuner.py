@@ -3,13 +3,13 @@
 ``tuner BAG [BAG ...] -o OUT.yaml [--params-file P.yaml ...] [--algorithm ipso|pso|cmaes] [--objective mae|nll]
 [--particles N] [--iterations N] [--seed N] [--report DIR] [--jobs N] [--dask ADDRESS] [--epoch-cache DIR |
 --no-epoch-cache] [--estimate-delay [--delay-range LOW HIGH]] [--estimate-steering-scale] [--estimate-yaw-inertia]
-[--tune-stiffness-noise] [--q-span DECADES] [--no-leave-one-out] [--debug]``
+[--estimate-relaxation-length] [--tune-stiffness-noise] [--q-span DECADES] [--no-leave-one-out] [--debug]``
 
 1. reads each bag's epochs with the layered parameters, decoding a bag only if the epoch cache
    (:mod:`transplanter_ident.bags.cache`) does not hold it yet; with ``--estimate-delay``, decodes each
    bag once and first searches ``gnss.delay`` over -0.2-0.3 s on the same objective at the starting Q/R,
-   then ``vehicle.steering_scale`` and ``vehicle.iz`` if asked (:mod:`transplanter_ident.cli.delay_search`),
-   and uses the epochs at the estimates;
+   then ``vehicle.steering_scale``, ``vehicle.iz`` and ``vehicle.relaxation_length`` if asked
+   (:mod:`transplanter_ident.cli.delay_search`), and uses the epochs at the estimates;
 2. searches the log10 diagonal of Q and R (eq. 22, :mod:`tuning`): the physical noises (vy, r, psi process
    noise and R; the stiffness and offset random walks and the change mechanism keep their designed values
    unless ``--tune-stiffness-noise``; each process noise within ``--q-span`` decades of its configured
@@ -33,23 +33,21 @@ The ``--report`` folder appears whole, together with OUT.yaml, or not at all.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import math
 import os
-import re
 import sys
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from functools import partial
 from pathlib import Path
 from typing import Any, NoReturn
 
+from transplanter_ident.cli.report_folder import check_report_path, report_folder
 from transplanter_ident.cli.util import CliError, cli_main
 from transplanter_ident.config.parameters import EstimatorConfig
 from transplanter_ident.config.params_file import EstimatorParams, load_params
 from transplanter_ident.config.params_writer import write_params_yaml
 from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.evaluation.cramer_rao import final_bound_line
-from transplanter_ident.files import atomic_output_dir
 from transplanter_ident.tuning.delay import DELAY_RANGE
 from transplanter_ident.tuning.multi import MultiBagProblem, leave_one_out
 from transplanter_ident.tuning.parallel import (
@@ -75,8 +73,6 @@ from transplanter_ident.tuning.tune import (
 from transplanter_ident.tuning.tune import tune as tune  # one bag, in-process (tests, benchmarks)
 
 MIN_EPOCHS = 50
-#: an existing ``--report`` folder holding only such files (an earlier report) may be replaced
-REPORT_NAMES = re.compile(r"fig\d[\w.-]*\.png|report\.txt|leave_one_out\.txt")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -152,6 +148,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "ekf.steering_scale_uncertainty) into OUT.yaml")
     parser.add_argument("--estimate-yaw-inertia", action="store_true", help="then search vehicle.iz (0.6-1.6 x the "
                         "configured, m lf lr if 0) likewise; writes it (with nll, its std as ekf.yaw_inertia_uncertainty)")
+    parser.add_argument("--estimate-relaxation-length", action="store_true", help="then find "
+                        "vehicle.relaxation_length from the filter's own measure of the tire force's lag, pooled "
+                        "over the bags; writes it into OUT.yaml (Q/R are tuned with it)")
     parser.add_argument("--tune-stiffness-noise", action="store_true",
                         help="also tune the stiffness random walk (q_Cf, q_Cr of ekf.process_noise); by default "
                              "only the physical noises (vy, r, psi and R) are tuned and the stiffness and offset "
@@ -284,11 +283,12 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
         report_decoded(decoded, cache_dir(args), sys.stderr)
     else:
         decoded = load_bags(args.bags, params, local, cache_dir(args), allow_partial=args.allow_partial)
-    if args.estimate_steering_scale or args.estimate_yaw_inertia:  # on the epochs at the delay, ahead of Q/R
+    if args.estimate_steering_scale or args.estimate_yaw_inertia or args.estimate_relaxation_length:  # ahead of Q/R
         from transplanter_ident.cli.delay_search import calibrate_vehicle
 
         params, decoded = calibrate_vehicle(decoded, params, local, estimated, objective=args.objective,
                                             steering_scale=args.estimate_steering_scale, yaw_inertia=args.estimate_yaw_inertia,
+                                            relaxation=args.estimate_relaxation_length,
                                             tune_stiffness_noise=args.tune_stiffness_noise, cache=cache_dir(args))
     epochs = [item.epochs for item in decoded]
     truths = [item.truth for item in decoded]
@@ -364,31 +364,6 @@ def check_finite(fitness: float, evaluations: int, bag: str) -> None:
         raise CliError(f"{bag}: none of the {evaluations} candidate Q/R gave a finite objective (each filter "
                        "diverged or never updated: too slow, below ekf.min_speed, or the base parameters do not fit "
                        "the bag); nothing written")
-
-
-@contextlib.contextmanager
-def report_folder(path: str | None) -> Iterator[Path | None]:
-    """A staging folder for ``--report DIR``, moved to DIR on success; None without ``--report``.
-
-    An existing DIR is replaced only if it is empty or an earlier report (its files only): never a
-    folder of other files (``--report .``).
-    """
-    if path is None:
-        yield None
-        return
-    check_report_path(path)
-    with atomic_output_dir(path, overwrite=True) as staged:
-        yield staged
-
-
-def check_report_path(path: str) -> None:
-    """CliError if ``--report DIR`` cannot be written, or would replace something that is not a report."""
-    target = Path(path)
-    parent = target.parent if str(target.parent) else Path(".")
-    if target.exists() and (not target.is_dir() or any(not REPORT_NAMES.fullmatch(p.name) for p in target.iterdir())):
-        raise CliError(f"{target}: exists and is not an earlier report; choose a new folder for --report")
-    if not parent.is_dir():
-        raise CliError(f"{target}: directory {parent} does not exist")
 
 
 def main(argv: list[str] | None = None) -> int:

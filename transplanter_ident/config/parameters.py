@@ -82,6 +82,7 @@ class FilterOptions:
     delay_uncertainty: float = 0.0  # s, 1-sigma of the GNSS delay left out of gnss.delay: the std holds its bias
     steering_scale_uncertainty: float = 0.0  # relative 1-sigma of the steering gain left out of vehicle.steering_scale
     yaw_inertia_uncertainty: float = 0.0  # relative 1-sigma of the yaw inertia left out of vehicle.iz
+    relaxation_uncertainty: float = 0.0  # m, 1-sigma of the tire relaxation length left out of vehicle.relaxation_length
     speed_noise: bool = True  # the GNSS speed, the model's input, is noisy: its variance enters Q through dx/dvx
     noise_adaptation: bool = True  # R raised to what the innovations show (covariance matching), never lowered
     noise_memory: float = 60.0  # s, time constant of that measure
@@ -124,6 +125,7 @@ class FilterOptions:
                                                                                    "delay_uncertainty",
                                                                                    "steering_scale_uncertainty",
                                                                                    "yaw_inertia_uncertainty",
+                                                                                   "relaxation_uncertainty",
                                                                                    "saturation_prior",
                                                                                    "max_tire_utilisation",
                                                                                    "relinearization_window"))

@@ -264,6 +264,9 @@ SCHEMA: tuple[Param, ...] = (
            0.0, 0.2),
     _float("ekf.yaw_inertia_uncertainty", 0.0, "", "relative 1-sigma of the yaw inertia left after vehicle.iz (tuner "
            "--estimate-yaw-inertia writes it): the Cf, Cr std hold the bias it causes (~0.8 % per %); 0: off", 0.0, 1.0),
+    _float("ekf.relaxation_uncertainty", 0.0, "m", "1-sigma of the tire relaxation length left after "
+           "vehicle.relaxation_length (tuner --estimate-relaxation-length writes it): the Cf, Cr std hold the bias it "
+           "causes (~0.5 % per cm at 2 m/s; /diagnostics relaxation_sensitivity_per_cm); 0: off", 0.0, 2.0),
     _bool("ekf.speed_noise", True, "the speed the model is driven with is the GNSS ground speed, as noisy as the "
           "velocity: the mean of an interval's two samples (each of R's velocity variance times the factor the "
           "innovations show), the first shared with the interval before; it enters P through the model's "

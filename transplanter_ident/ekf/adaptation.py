@@ -57,6 +57,7 @@ from transplanter_ident.ekf.layout import (
     S_MIN_FRICTION,
     S_NOISE_ADAPTATION,
     S_NOISE_MEMORY,
+    S_RELAXATION_UNCERTAINTY,
     S_SATURATION_CORRECTION,
     S_SATURATION_MEMORY,
     S_SATURATION_PRIOR,
@@ -243,15 +244,16 @@ def propagate_inertia_bias(memo, settings, n, nd, h1, antenna_x, updated, ws):
 def held_bias_variance(memo, settings, i, unpinned):
     """The variance that state i's std holds for the biases of the model's known errors.
 
-    The tire's (the share ``unpinned`` of it), the delay's, the steering gain's and the yaw inertia's at
-    their configured 1-sigma (``ekf.delay_uncertainty``, ``ekf.steering_scale_uncertainty``,
-    ``ekf.yaw_inertia_uncertainty``).
+    The tire's (the share ``unpinned`` of it), the delay's, the steering gain's, the yaw inertia's and the
+    relaxation length's at their configured 1-sigma (``ekf.delay_uncertainty``,
+    ``ekf.steering_scale_uncertainty``, ``ekf.yaw_inertia_uncertainty``, ``ekf.relaxation_uncertainty``).
     """
     tire = memo[M_BIAS + i]
     delay = memo[M_DELAY_BIAS + i] * settings[S_DELAY_UNCERTAINTY]
     scale = memo[M_SCALE_BIAS + i] * settings[S_SCALE_UNCERTAINTY]
     inertia = memo[M_INERTIA_BIAS + i] * settings[S_INERTIA_UNCERTAINTY]
-    return unpinned * tire * tire + delay * delay + scale * scale + inertia * inertia
+    lag = memo[M_RELAXATION_BIAS + i] * settings[S_RELAXATION_UNCERTAINTY]
+    return unpinned * tire * tire + delay * delay + scale * scale + inertia * inertia + lag * lag
 
 
 @inline_kernel

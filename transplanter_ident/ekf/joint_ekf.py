@@ -70,6 +70,7 @@ from transplanter_ident.ekf.layout import (
     S_P0_THETA_R,
     S_P0_VY,
     S_R_FROM_COVARIANCE,
+    S_RELAXATION_UNCERTAINTY,
     S_SATURATION_CORRECTION,
     S_SATURATION_MEMORY,
     S_SATURATION_PRIOR,
@@ -149,6 +150,7 @@ class FilterArrays:
         settings[S_DELAY_UNCERTAINTY] = options.delay_uncertainty
         settings[S_SCALE_UNCERTAINTY] = options.steering_scale_uncertainty
         settings[S_INERTIA_UNCERTAINTY] = options.yaw_inertia_uncertainty
+        settings[S_RELAXATION_UNCERTAINTY] = options.relaxation_uncertainty
         settings[S_SPEED_NOISE] = 1.0 if options.speed_noise else 0.0
         settings[S_DELAY_MEMORY] = options.identifiability_memory
         q, p0 = _state_diagonals(noise, options, config.vehicle.relaxation_length > 0.0)

@@ -51,7 +51,8 @@ S_SPEED_NOISE = 36  # 1: the speed input's noise (R's velocity variance per samp
 S_MAX_UTILISATION = 37  # the linear range's force limit, a fraction of mu Fz at min_friction (adaptation.py)
 S_SHIFT, S_SHIFT_THRESHOLD = 38, 39  # the directional change test's shift (in std) and alarm level (adaptation.py)
 S_INERTIA_UNCERTAINTY = 40  # relative 1-sigma of the yaw inertia left out of vehicle.iz (adaptation.propagate_inertia_bias)
-N_SETTINGS = 41
+S_RELAXATION_UNCERTAINTY = 41  # m, 1-sigma of the relaxation length left out of vehicle.relaxation_length
+N_SETTINGS = 42
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6

@@ -5,7 +5,9 @@ values add the band's scale / ratio decomposition and weak direction
 (:class:`.validity.Identifiability`), the tire-saturation bias carried in the band
 (``ekf.min_friction``), the factors on R the innovations have shown (``ekf.noise_adaptation``) and
 how far Cf and Cr move per ms of GNSS delay left out of ``gnss.delay`` (relative, first order), and
-that delay as the innovations show it (ms, and its std; std 0: not measured yet).
+that delay as the innovations show it (ms, and its std; std 0: not measured yet); likewise a tire
+relaxation length left out of ``vehicle.relaxation_length`` (m) and Cf, Cr's move per cm of it.
+:func:`model_errors_line` is replay's summary of the two measures.
 """
 
 from __future__ import annotations
@@ -48,3 +50,14 @@ def convergence_report(node: str, estimate: Estimate | None, updates: int, limit
         return HealthReport(name, WARN, "no stiffness update yet", values)
     return HealthReport(name, WARN, f"not converged: relative std Cf {100 * rel_f:.1f} %, Cr {100 * rel_r:.1f} % "
                         f"(threshold {100 * limit:g} %); {known.describe()}", values)
+
+
+def model_errors_line(estimate: Estimate, relaxation_length: float) -> str:
+    """What the innovations show of the GNSS delay and the tire relaxation the configuration left out (replay)."""
+    delay, delay_std = estimate.delay_estimate
+    lag, lag_std = estimate.relaxation_estimate
+    if not (delay_std > 0.0 or lag_std > 0.0):
+        return "Model errors the innovations show: not measured (too few updates)"
+    return (f"Model errors the innovations show (final): GNSS delay not in gnss.delay {1e3 * delay:+.1f} +- "
+            f"{1e3 * delay_std:.1f} ms; tire relaxation beyond vehicle.relaxation_length ({relaxation_length:g} m) "
+            f"{lag:+.3f} +- {lag_std:.3f} m")
