@@ -121,23 +121,27 @@ def test_a_delay_that_moves_the_stiffness_beyond_its_band_is_not_valid() -> None
 
     Measured 4.1 % (11 % when the measure started after 20 s of data instead of 10); 29 % without the
     shift check (validity.max_delay_shift 100). The reason says by how much the delay moves the
-    stiffness. The same drives without the delay lose <= 3 points (measured 92.7 -> 92.5 %).
+    stiffness. The same drives without the delay lose <= 3 points (measured 92.7 -> 92.5 %). The other
+    model errors' checks (model_errors.py) are off here: a delay looks like a relaxation length or a
+    steering gain to them, and they alone leave 4.0 % valid.
     """
-    without = ValiditySettings(max_delay_shift=100.0)
+    others_off = {f"max_{name}_{test}": 100.0 for name in ("relaxation", "steering_gain") for test in ("sigmas", "shift")}
+    checked = ValiditySettings(**others_off)
+    without = ValiditySettings(max_delay_shift=100.0, **others_off)
     shares: dict[tuple[float, bool], list[float]] = {}
     for seed in SEEDS:
         for delay in (0.01, 0.0):
             result = simulate(sine_drive(seed, gnss_delay=delay))
             run, epochs = run_drive(result), epochs_of(result)
-            for checked, settings in ((True, ValiditySettings()), (False, without)):
+            for shifts, settings in ((True, checked), (False, without)):
                 valid = decide_sequence(EstimatorConfig(), settings, epochs, run.outputs)
-                shares.setdefault((delay, checked), []).append(np.mean(valid[run.t >= 30.0]))
+                shares.setdefault((delay, shifts), []).append(np.mean(valid[run.t >= 30.0]))
     late, late_unchecked = np.mean(shares[0.01, True]), np.mean(shares[0.01, False])
     clean, clean_unchecked = np.mean(shares[0.0, True]), np.mean(shares[0.0, False])
     assert late <= 0.08 and late_unchecked >= 2.0 * late, (late, late_unchecked)
     assert clean >= clean_unchecked - 0.03, (clean, clean_unchecked)
     result = simulate(sine_drive(1, gnss_delay=0.01))
-    run, monitor = run_drive(result), monitor_for(EstimatorConfig(), ValiditySettings())
+    run, monitor = run_drive(result), monitor_for(EstimatorConfig(), checked)
     reasons = [r for k, epoch in enumerate(epochs_of(result)) for r in monitor.step(sample_of(epoch, run.outputs[k])).reasons]
     assert any("moves the stiffness by" in r and "gnss.delay" in r for r in reasons)
 

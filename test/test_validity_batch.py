@@ -2,7 +2,7 @@
 
 Compared on the drives of test_validity.py (clean, stiffness drop, the paper's step, unconfigured
 delays, course-over-ground heading, ENU declared NED), a drifting stiffness, and on outputs perturbed
-at random (statuses, NaN NIS, spread, bounds, stiffness updates and alarms, a measured tire relaxation) under
+at random (statuses, NaN NIS, spread, bounds, stiffness updates and alarms, measured model errors) under
 random validity
 settings, so every check and the hysteresis switch.
 """
@@ -24,15 +24,12 @@ from transplanter_ident.ekf.layout import (
     O_CHANGE,
     O_CR_STD,
     O_NIS_CONFIGURED,
-    O_RELAXATION,
-    O_RELAXATION_SENS_F,
-    O_RELAXATION_SENS_R,
-    O_RELAXATION_STD,
     O_STATUS,
     O_UPDATE_F,
     O_UPDATE_R,
     StepStatus,
 )
+from transplanter_ident.evaluation.model_errors import MODEL_ERRORS
 from transplanter_ident.evaluation.validity import (
     DISTRUSTED,
     RECHECK,
@@ -133,11 +130,11 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
                 outputs[int(rng.integers(start, stop)), O_CHANGE] = 1.0
             elif what == 4:
                 outputs[start:stop, O_CF] = CONFIG.options.stiffness_bounds[1]
-            elif what == 5:  # a measured relaxation length of either sign, some rows not measured yet
-                outputs[start:stop, O_RELAXATION] = rng.normal(rng.choice((-0.2, 0.2)), 0.1, stop - start)
-                outputs[start:stop, O_RELAXATION_STD] = rng.uniform(0.03, 0.15, stop - start) * (
-                    rng.random(stop - start) < 0.9)
-                outputs[start:stop, [O_RELAXATION_SENS_F, O_RELAXATION_SENS_R]] = rng.normal(0.0, 0.5, (stop - start, 2))
+            elif what == 5:  # a measured model error of either sign, some rows not measured yet
+                value, std, sens_f, sens_r = MODEL_ERRORS[int(rng.integers(0, len(MODEL_ERRORS)))].columns
+                outputs[start:stop, value] = rng.normal(rng.choice((-0.2, 0.2)), 0.1, stop - start)
+                outputs[start:stop, std] = rng.uniform(0.03, 0.15, stop - start) * (rng.random(stop - start) < 0.9)
+                outputs[start:stop, [sens_f, sens_r]] = rng.normal(0.0, 0.5, (stop - start, 2))
         settings = dataclasses.replace(
             SETTINGS, window=float(rng.choice((2.0, 5.0, 10.0))), hold_on=float(rng.choice((0.2, 1.0, 3.0))),
             hold_off=float(rng.choice((0.1, 0.5, 1.0))), max_autocorrelation=float(rng.choice((0.05, 0.3))),
@@ -146,7 +143,9 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
             max_suspect_fraction=float(rng.choice((0.05, 0.5))), max_delay_sigmas=float(rng.choice((1.0, 3.0))),
             max_delay_shift=float(rng.choice((0.3, 1.5, 100.0))), drift_window=float(rng.choice((0.0, 20.0, 90.0))),
             max_drift_sigmas=float(rng.choice((1.0, 2.5))), max_relaxation_sigmas=float(rng.choice((1.0, 3.0))),
-            max_relaxation_shift=float(rng.choice((0.3, 1.0, 100.0))))
+            max_relaxation_shift=float(rng.choice((0.3, 1.0, 100.0))),
+            max_steering_gain_sigmas=float(rng.choice((1.0, 3.0))),
+            max_steering_gain_shift=float(rng.choice((0.3, 1.0, 100.0))))
         rejected = [0] * n
         for _ in range(int(rng.integers(0, 4))):
             start = int(rng.integers(0, n))
@@ -160,11 +159,11 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
         flips += int(np.count_nonzero(np.diff(expected.astype(int))))
         drifts += not np.array_equal(expected, monitor_decisions(dataclasses.replace(settings, drift_window=0.0), epochs,
                                                                  outputs, rejected))
-        relaxes += not np.array_equal(expected, monitor_decisions(
-            dataclasses.replace(settings, max_relaxation_sigmas=100.0, max_relaxation_shift=100.0), epochs, outputs,
-            rejected))
+        unmeasured = dataclasses.replace(settings, **{f"max_{e.name}_{test}": 100.0 for e in MODEL_ERRORS
+                                                      for test in ("sigmas", "shift")})
+        relaxes += not np.array_equal(expected, monitor_decisions(unmeasured, epochs, outputs, rejected))
     assert flips > 50  # the cases switch valid on and off, not one constant answer
-    assert drifts >= 3 and relaxes >= 3  # and the drift and relaxation tests decided some of them
+    assert drifts >= 3 and relaxes >= 3  # and the drift test and the model errors' tests decided some of them
 
 
 def test_times_that_go_back_use_the_monitor() -> None:

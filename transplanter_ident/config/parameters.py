@@ -202,6 +202,8 @@ class ValiditySettings:
     max_delay_shift: float = 1.5  # the Cf or Cr shift the measured delay implies (lower 1-sigma), in reported std
     max_relaxation_sigmas: float = 3.0  # a tire relaxation length left out, this many std from 0 (the filter's measure)
     max_relaxation_shift: float = 1.5  # the Cf or Cr shift the measured relaxation implies (lower 1-sigma), in std
+    max_steering_gain_sigmas: float = 3.0  # a steering gain (or yaw inertia) error this many std from 0 fails
+    max_steering_gain_shift: float = 1.5  # the Cf or Cr shift the measured gain error implies (lower 1-sigma), in std
     drift_window: float = 90.0  # s of stiffness updates (since the last change alarm) the drift test sums; 0: off
     max_drift_sigmas: float = 2.5  # their normalised sum beyond +-this x sqrt(n): the stiffness drifts, the band lags
 
@@ -210,7 +212,8 @@ class ValiditySettings:
                                                  "max_autocorrelation", "max_sideslip", "course_ratio",
                                                  "max_nonlinear_fraction", "max_suspect_fraction",
                                                  "max_delay_sigmas", "max_delay_shift", "max_relaxation_sigmas",
-                                                 "max_relaxation_shift", "max_drift_sigmas"),
+                                                 "max_relaxation_shift", "max_steering_gain_sigmas",
+                                                 "max_steering_gain_shift", "max_drift_sigmas"),
                      non_negative=("min_steering_std", "min_yaw_rate_std", "hold_on", "hold_off", "drift_window"))
 
 

@@ -337,6 +337,13 @@ SCHEMA: tuple[Param, ...] = (
     _float("validity.max_relaxation_shift", 1.5, "", "the shift of Cf or Cr that the measured relaxation length "
            "implies (its lower 1-sigma bound times the estimate's sensitivity per metre), in the estimate's "
            "reported std, above which the estimate is not valid", 0.1, 100.0, read_only=False),
+    _float("validity.max_steering_gain_sigmas", 3.0, "", "a steering gain left out of vehicle.steering_scale (or a "
+           "yaw inertia off vehicle.iz, which looks alike), as the filter measures it from its innovations "
+           "(/diagnostics steering_gain_estimate_percent), this many std from zero makes the estimate invalid", 0.5,
+           100.0, read_only=False),
+    _float("validity.max_steering_gain_shift", 1.5, "", "the shift of Cf or Cr that the measured steering gain error "
+           "implies (its lower 1-sigma bound times the estimate's sensitivity), in the estimate's reported std, above "
+           "which the estimate is not valid", 0.1, 100.0, read_only=False),
     _float("validity.max_autocorrelation", 0.3, "", "lag-1 autocorrelation of the whitened vy innovation above "
            "which the filter is inconsistent (an unconfigured delay)", 0.01, 1.0, read_only=False),
     _float("validity.max_sideslip", 0.35, "rad", "median |vy/vx| above which GNSS velocity and heading disagree "

@@ -12,8 +12,8 @@
   :func:`propagate_scale_bias`: per unit of steering-sensor gain left out of
   ``vehicle.steering_scale`` (times ``ekf.steering_scale_uncertainty``), :func:`propagate_inertia_bias`
   per unit of ln Iz left out of ``vehicle.iz`` (times ``ekf.yaw_inertia_uncertainty``;
-  :func:`held_bias_variance` sums what the std holds); :func:`score_signature` measures that delay, and how far the tires
-  saturate, from the innovations;
+  :func:`held_bias_variance` sums what the std holds); :func:`score_signature` measures that delay, that gain, and how
+  far the tires saturate, from the innovations (evaluation/model_errors.py tests the measures);
   :func:`saturation_share` turns the latter into the correction of Cf, Cr and the bias the std keeps;
 * :func:`learn_noise_scales` / :func:`noise_scale`: R as the innovations show it (covariance
   matching, E[e e^T] = H P^- H^T + R), never below the configured R. Sensors noisier than R would
@@ -217,15 +217,15 @@ def propagate_delay_bias(memo, n, nd, h1, antenna_x, updated, steering_rate, ws)
 
 
 @inline_kernel
-def propagate_scale_bias(memo, settings, n, nd, h1, antenna_x, updated, steering, ws):
+def propagate_scale_bias(memo, n, nd, h1, antenna_x, updated, steering, ws):
     """The estimate's first-order bias per unit of steering gain left out of the configured one (M_SCALE_BIAS).
 
     A sensor whose gain is 1 + eps times the configured one makes the true wheel angle the filter's
     plus eps times the (scaled) sensor angle: a steering offset of -eps * steering over the interval.
-    Only with ``ekf.steering_scale_uncertainty`` > 0 (the tuner's inner loop does not pay for it).
+    Returns H b of the prediction: the innovation per unit of such a gain (:func:`score_signature`;
+    a yaw inertia off ``vehicle.iz`` leaves a look-alike).
     """
-    if settings[S_SCALE_UNCERTAINTY] > 0.0:
-        propagate_bias(memo, M_SCALE_BIAS, n, nd, h1, antenna_x, updated, 0.0, 0.0, -steering, ws)
+    return propagate_bias(memo, M_SCALE_BIAS, n, nd, h1, antenna_x, updated, 0.0, 0.0, -steering, ws)
 
 
 @inline_kernel

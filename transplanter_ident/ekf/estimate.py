@@ -35,6 +35,8 @@ from transplanter_ident.ekf.layout import (
     O_S11,
     O_SATURATION,
     O_SATURATION_STD,
+    O_SCALE_ESTIMATE,
+    O_SCALE_ESTIMATE_STD,
     O_SCALE_SENS_F,
     O_SCALE_SENS_R,
     O_STATUS,
@@ -104,6 +106,11 @@ class Estimate:
     def relaxation_sensitivity(self) -> tuple[float, float]:
         """Relative error of Cf, Cr per metre of tire relaxation length left out (relaxation_signature.py)."""
         return self._pair(O_RELAXATION_SENS_F, O_RELAXATION_SENS_R, 0.0)
+
+    @property
+    def steering_gain_estimate(self) -> tuple[float, float]:
+        """(relative, std) of the steering gain left out of vehicle.steering_scale (or Iz's look-alike; std 0: not yet)."""
+        return self._pair(O_SCALE_ESTIMATE, O_SCALE_ESTIMATE_STD, 0.0)
 
     @property
     def saturation(self) -> tuple[float, float]:

@@ -74,6 +74,8 @@ from transplanter_ident.ekf.layout import (
     M_SATURATION_INFORMATION,
     M_SATURATION_SCORE,
     M_SCALE_BIAS,
+    M_SCALE_INFORMATION,
+    M_SCALE_SCORE,
     M_SHIFT,
     M_SPEED_CROSS,
     M_T_PREV,
@@ -107,6 +109,8 @@ from transplanter_ident.ekf.layout import (
     O_S11,
     O_SATURATION,
     O_SATURATION_STD,
+    O_SCALE_ESTIMATE,
+    O_SCALE_ESTIMATE_STD,
     O_SCALE_SENS_F,
     O_SLIP_F,
     O_SLIP_R,
@@ -201,6 +205,7 @@ def make_kernels(heading, lagged=False):
                                                                       M_SATURATION_INFORMATION)
         out[O_RELAXATION], out[O_RELAXATION_STD] = signature_estimate(memo, M_RELAXATION_SCORE,
                                                                       M_RELAXATION_INFORMATION)
+        out[O_SCALE_ESTIMATE], out[O_SCALE_ESTIMATE_STD] = signature_estimate(memo, M_SCALE_SCORE, M_SCALE_INFORMATION)
         out[O_NOISE_SCALE_VY] = noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY)
         out[O_NOISE_SCALE_SECOND] = noise_scale(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND)
 
@@ -363,7 +368,7 @@ def make_kernels(heading, lagged=False):
         tire0, tire1 = propagate_tire_bias(memo, vehicle, settings, n, nd, h1, antenna_x, updated, out[O_SLIP_F],
                                            out[O_SLIP_R], cf_now, cr_now, log_state, ws)
         g0, g1 = propagate_delay_bias(memo, n, nd, h1, antenna_x, updated, steering_rate, ws)
-        propagate_scale_bias(memo, settings, n, nd, h1, antenna_x, updated, steering, ws)
+        gain0, gain1 = propagate_scale_bias(memo, n, nd, h1, antenna_x, updated, steering, ws)
         propagate_inertia_bias(memo, settings, n, nd, h1, antenna_x, updated, ws)
         lag0, _ = propagate_relaxation_bias(memo, n, nd, nb, h1, antenna_x, updated, speed, eps_f, eps_r, ws)
         keep_speed_cross(memo, speed_variance, antenna_x, updated, ws)
@@ -373,6 +378,8 @@ def make_kernels(heading, lagged=False):
             score_model_errors(memo, settings, dt, g0, g1, tire0, tire1, e0, e1, s00, s01, s11, det)
             score_signature(memo, M_RELAXATION_SCORE, M_RELAXATION_INFORMATION, settings[S_SATURATION_MEMORY], dt, lag0,
                             0.0, e0, 0.0, s00, 0.0, 1.0, s00)  # vy alone (relaxation_signature.py)
+            score_signature(memo, M_SCALE_SCORE, M_SCALE_INFORMATION, settings[S_SATURATION_MEMORY], dt, gain0,
+                            gain1, e0, e1, s00, s01, s11, det)
         write_outputs(x, p, memo, settings, status, r_model, vy_model, out)
         return status
 

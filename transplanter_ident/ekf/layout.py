@@ -72,7 +72,8 @@ O_UPDATE_F, O_UPDATE_R = 37, 38
 # m: the tire relaxation length left out of vehicle.relaxation_length as the innovations show it (std 0: none yet),
 # and the relative error of Cf, Cr per metre of it (relaxation_signature.py)
 O_RELAXATION, O_RELAXATION_STD, O_RELAXATION_SENS_F, O_RELAXATION_SENS_R = 39, 40, 41, 42
-N_OUTPUTS = 43
+O_SCALE_ESTIMATE, O_SCALE_ESTIMATE_STD = 43, 44
+N_OUTPUTS = 45
 
 # memo vector
 M_T_PREV, M_INITIALISED, M_GATED, M_CUSUM, M_ADAPT_UNTIL, M_DIVERGED = 0, 1, 2, 3, 4, 5
@@ -103,7 +104,8 @@ M_INERTIA_BIAS = M_SHIFT_LAST + 2
 #: then the online measure of that length (adaptation.score_signature): score and information
 M_RELAXATION_BIAS = M_INERTIA_BIAS + MAX_STATES
 M_RELAXATION_SCORE, M_RELAXATION_INFORMATION = M_RELAXATION_BIAS + MAX_STATES, M_RELAXATION_BIAS + MAX_STATES + 1
-N_MEMO = M_RELAXATION_INFORMATION + 1
+M_SCALE_SCORE, M_SCALE_INFORMATION = M_RELAXATION_INFORMATION + 1, M_RELAXATION_INFORMATION + 2
+N_MEMO = M_SCALE_INFORMATION + 1
 
 # the open-loop model's state: the filter's motion states and slip lags, [vy, r, psi, d_f, d_r] or [vy, r, d_f, d_r]
 N_MODEL = N_MOTION_HEADING + N_LAG

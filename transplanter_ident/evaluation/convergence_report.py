@@ -6,8 +6,9 @@ values add the band's scale / ratio decomposition and weak direction
 (``ekf.min_friction``), the factors on R the innovations have shown (``ekf.noise_adaptation``) and
 how far Cf and Cr move per ms of GNSS delay left out of ``gnss.delay`` (relative, first order), and
 that delay as the innovations show it (ms, and its std; std 0: not measured yet); likewise a tire
-relaxation length left out of ``vehicle.relaxation_length`` (m) and Cf, Cr's move per cm of it.
-:func:`model_errors_line` is replay's summary of the two measures.
+relaxation length left out of ``vehicle.relaxation_length`` (m) and Cf, Cr's move per cm of it, and
+a steering gain left out of ``vehicle.steering_scale`` (%; a yaw inertia off ``vehicle.iz`` looks alike).
+:func:`model_errors_line` is replay's summary of the three measures.
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ def convergence_report(node: str, estimate: Estimate | None, updates: int, limit
               ("delay_estimate_ms", "{:+.1f} {:.1f}".format(*(1.0e3 * v for v in estimate.delay_estimate))),
               ("relaxation_estimate_m", "{:+.3f} {:.3f}".format(*estimate.relaxation_estimate)),
               ("relaxation_sensitivity_per_cm", "{:+.4f} {:+.4f}".format(*(0.01 * v for v in estimate.relaxation_sensitivity))),
+              ("steering_gain_estimate_percent", "{:+.2f} {:.2f}".format(*(100 * v for v in estimate.steering_gain_estimate))),
               ("scale_sensitivity_per_percent", "{:+.4f} {:+.4f}".format(*(0.01 * v for v in estimate.scale_sensitivity))))
     if converged:
         return HealthReport(name, OK, f"converged: Cf {cf:.0f} +- {100 * rel_f:.1f} %, "
@@ -53,11 +55,13 @@ def convergence_report(node: str, estimate: Estimate | None, updates: int, limit
 
 
 def model_errors_line(estimate: Estimate, relaxation_length: float) -> str:
-    """What the innovations show of the GNSS delay and the tire relaxation the configuration left out (replay)."""
+    """What the innovations show of the GNSS delay, the tire relaxation and the steering gain left out (replay)."""
     delay, delay_std = estimate.delay_estimate
     lag, lag_std = estimate.relaxation_estimate
+    gain, gain_std = estimate.steering_gain_estimate
     if not (delay_std > 0.0 or lag_std > 0.0):
         return "Model errors the innovations show: not measured (too few updates)"
     return (f"Model errors the innovations show (final): GNSS delay not in gnss.delay {1e3 * delay:+.1f} +- "
             f"{1e3 * delay_std:.1f} ms; tire relaxation beyond vehicle.relaxation_length ({relaxation_length:g} m) "
-            f"{lag:+.3f} +- {lag_std:.3f} m")
+            f"{lag:+.3f} +- {lag_std:.3f} m; steering gain off vehicle.steering_scale (or Iz off vehicle.iz) "
+            f"{100 * gain:+.2f} +- {100 * gain_std:.2f} %")

@@ -4,8 +4,9 @@ A precise-looking number that is wrong is the worst output, so an estimate is va
 of these hold over a window of data time (the same decision online and offline):
 
 * converged: the relative 1-sigma of Cf and Cr is small, and neither is pinned at a bound;
-* no GNSS delay left out: the delay the filter measures from its innovations is not 3 std from zero,
-  nor does it (its lower 1-sigma bound) move Cf or Cr beyond their reported std;
+* no model error left out (:mod:`.model_errors`): a GNSS delay, a tire relaxation length, a steering
+  gain (or yaw inertia) that the filter measures from its innovations is not 3 std from zero, nor does
+  it (its lower 1-sigma bound) move Cf or Cr beyond their reported std;
 * excited: the steering and the yaw rate varied enough (a held step identifies little);
 * consistent: the normalised innovation squared (NIS, chi^2 with 2 dof per epoch when the
   filter's model and R are right) passes a windowed chi^2 test, and the whitened innovations are
@@ -45,16 +46,8 @@ from transplanter_ident.ekf.layout import (
     O_CHANGE,
     O_CR,
     O_CR_STD,
-    O_DELAY_ESTIMATE,
-    O_DELAY_ESTIMATE_STD,
-    O_DELAY_SENS_F,
-    O_DELAY_SENS_R,
     O_E0,
     O_NIS_CONFIGURED,
-    O_RELAXATION,
-    O_RELAXATION_SENS_F,
-    O_RELAXATION_SENS_R,
-    O_RELAXATION_STD,
     O_S00,
     O_STATUS,
     O_UPDATE_F,
@@ -62,10 +55,10 @@ from transplanter_ident.ekf.layout import (
     StepStatus,
 )
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
+from transplanter_ident.evaluation.model_errors import MODEL_ERRORS, Measure, measures_of
 from transplanter_ident.evaluation.validity_batch import (
     MIN_DRIFT_UPDATES,
     decide_batch,
-    measure_verdict,
     steady_antenna_vy,
 )
 
@@ -95,13 +88,8 @@ class Sample:
     nis: float  # against the configured R (layout.O_NIS_CONFIGURED)
     whitened_vy: float  # e0 / sqrt(S00)
     rejected: int = 0  # input samples (and epochs) rejected since the previous epoch
-    delay: float = 0.0  # s, the GNSS delay left out of gnss.delay as the filter measures it (layout.O_DELAY_ESTIMATE)
-    delay_std: float = 0.0  # s, its std (0: not measured yet)
-    delay_sensitivity: tuple[float, float] = (0.0, 0.0)  # relative error of Cf, Cr per s of delay (O_DELAY_SENS_F/R)
+    measures: tuple[Measure, ...] = ()  # the filter's measures of model errors left out (model_errors.MODEL_ERRORS)
     updates: tuple[float, float] = (0.0, 0.0)  # the normalised stiffness updates (O_UPDATE_F/R; 0: none)
-    relaxation: float = 0.0  # m, the tire relaxation length left out as the filter measures it (O_RELAXATION)
-    relaxation_std: float = 0.0  # m, its std (0: not measured yet)
-    relaxation_sensitivity: tuple[float, float] = (0.0, 0.0)  # relative error of Cf, Cr per m (O_RELAXATION_SENS_F/R)
     change: bool = False  # a surface-change alarm at this epoch (O_CHANGE): the drift test starts again
 
 
@@ -187,22 +175,10 @@ class ValidityMonitor:
         worst = max(relative)
         if not worst <= self.settings.max_rel_std:
             reasons.append(f"not converged (relative 1-sigma {worst:.3f} > {self.settings.max_rel_std:g})")
-        delay = measure_verdict(sample.delay, sample.delay_std, sample.delay_sensitivity, relative,
-                                 self.settings.max_delay_sigmas, self.settings.max_delay_shift)
-        if delay is not None:
-            shown = f"the innovations show a GNSS delay of {1e3 * sample.delay:+.0f} +- {1e3 * sample.delay_std:.0f} ms"
-            reasons.append(f"{shown} not in gnss.delay (the stiffness moves ~2 % per ms): set gnss.delay, or tuner "
-                           "--estimate-delay" if delay == 0.0 else
-                           f"{shown}, which moves the stiffness by {100 * delay:.0f} % or more, beyond its band: set "
-                           "gnss.delay, or tuner --estimate-delay")
-        lag = max(sample.relaxation, 0.0)  # a tire's force lags its slip, never leads it
-        relaxation = measure_verdict(lag, sample.relaxation_std, sample.relaxation_sensitivity, relative,
-                                     self.settings.max_relaxation_sigmas, self.settings.max_relaxation_shift)
-        if relaxation is not None:
-            moved = "" if relaxation == 0.0 else f", which moves the stiffness by {100 * relaxation:.0f} % or more"
-            reasons.append(f"the innovations show the tire force lagging the slip over {sample.relaxation:.2f} +- "
-                           f"{sample.relaxation_std:.2f} m of travel more than vehicle.relaxation_length{moved}: set "
-                           "vehicle.relaxation_length (the tire's relaxation length, of the order of its radius)")
+        for error, measure in zip(MODEL_ERRORS, sample.measures, strict=False):  # a GNSS delay, a relaxation, a gain
+            reason = error.reason(measure, relative, self.settings)
+            if reason is not None:
+                reasons.append(reason)
         return reasons
 
     def _plausibility(self, window: list[Sample]) -> list[str]:
@@ -326,11 +302,8 @@ def sample_of(epoch: Epoch, row: np.ndarray, rejected: int = 0) -> Sample:
                   yaw_rate=epoch.yaw_rate, speed=epoch.speed,
                   antenna_lateral_velocity=float(epoch.antenna_lateral_velocity), nis=float(row[O_NIS_CONFIGURED]),
                   whitened_vy=float(row[O_E0]) / math.sqrt(s00) if s00 > 0.0 else 0.0, rejected=int(rejected),
-                  delay=float(row[O_DELAY_ESTIMATE]), delay_std=float(row[O_DELAY_ESTIMATE_STD]),
-                  delay_sensitivity=(float(row[O_DELAY_SENS_F]), float(row[O_DELAY_SENS_R])),
-                  updates=(float(row[O_UPDATE_F]), float(row[O_UPDATE_R])), change=bool(row[O_CHANGE] > 0.0),
-                  relaxation=float(row[O_RELAXATION]), relaxation_std=float(row[O_RELAXATION_STD]),
-                  relaxation_sensitivity=(float(row[O_RELAXATION_SENS_F]), float(row[O_RELAXATION_SENS_R])))
+                  measures=measures_of(row), updates=(float(row[O_UPDATE_F]), float(row[O_UPDATE_R])),
+                  change=bool(row[O_CHANGE] > 0.0))
 
 
 def monitor_for(config: EstimatorConfig, settings: ValiditySettings) -> ValidityMonitor:

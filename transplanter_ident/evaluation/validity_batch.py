@@ -23,16 +23,8 @@ from transplanter_ident.ekf.layout import (
     O_CHANGE,
     O_CR,
     O_CR_STD,
-    O_DELAY_ESTIMATE,
-    O_DELAY_ESTIMATE_STD,
-    O_DELAY_SENS_F,
-    O_DELAY_SENS_R,
     O_E0,
     O_NIS_CONFIGURED,
-    O_RELAXATION,
-    O_RELAXATION_SENS_F,
-    O_RELAXATION_SENS_R,
-    O_RELAXATION_STD,
     O_S00,
     O_STATUS,
     O_UPDATE_F,
@@ -40,64 +32,12 @@ from transplanter_ident.ekf.layout import (
     StepStatus,
 )
 from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.evaluation.model_errors import MODEL_ERRORS
 from transplanter_ident.jit import entry_kernel
 
 _PREDICTED = (StepStatus.UPDATED, StepStatus.NONLINEAR, StepStatus.GATED)
 #: fewer stiffness updates in the drift test's span: no verdict (ValidityMonitor._drift, _drifting)
 MIN_DRIFT_UPDATES = 10
-
-
-def measure_shows(value, std, sigmas: float):  # noqa: ANN001, ANN201 - floats or arrays alike
-    """Whether a model error the filter measures (a GNSS delay, a relaxation length) is ``sigmas`` std from zero.
-
-    Never before it is measured (std 0).
-    """
-    return (std > 0.0) & (np.abs(value) > sigmas * std)
-
-
-def measure_shift(value, std, sensitivity):  # noqa: ANN001, ANN201 - floats or arrays alike
-    """The relative stiffness shift the measured model error implies at its lower 1-sigma bound.
-
-    max(|value| - std, 0) times the estimate's relative error per unit of it (layout.O_DELAY_SENS_F/R,
-    O_RELAXATION_SENS_F/R).
-    """
-    return np.abs(sensitivity) * np.maximum(np.abs(value) - std, 0.0)
-
-
-def measure_shifts(value, std, sensitivity, rel_std, max_shift: float):  # noqa: ANN001, ANN201 - floats or arrays alike
-    """Whether the measured error moves a stiffness (:func:`measure_shift`) beyond ``max_shift`` of its relative std.
-
-    At 2 m/s a stiffness moves ~2 % per ms of GNSS delay, so a delay of 10 ms that is not yet 3 std
-    from zero (:func:`measure_shows`) already moves the estimate several times its band; likewise
-    ~0.5 % per cm of tire relaxation.
-    """
-    return (std > 0.0) & (measure_shift(value, std, sensitivity) > max_shift * rel_std)
-
-
-def measure_verdict(value: float, std: float, sensitivity: tuple[float, float], relative: tuple[float, float],
-                     sigmas: float, max_shift: float) -> float | None:
-    """None when a measured model error passes both tests; else the stiffness shift it implies (0: std from zero).
-
-    ``relative``: the estimate's relative std of Cf, Cr (:func:`measure_shifts`).
-    """
-    if measure_shows(value, std, sigmas):
-        return 0.0
-    if any(measure_shifts(value, std, s, rel, max_shift) for s, rel in zip(sensitivity, relative, strict=True)):
-        return max(float(measure_shift(value, std, s)) for s in sensitivity)
-    return None
-
-
-def _measure_fails(outputs: np.ndarray, columns: tuple[int, int, int, int], front: np.ndarray, rear: np.ndarray,
-                   sigmas: float, max_shift: float, lagging: bool = False) -> np.ndarray:
-    """Per epoch, whether a measured model error (value, std, sensitivity of Cf, of Cr columns) fails either test.
-
-    ``lagging``: only a positive value counts (a tire's force lags its slip, never leads it).
-    """
-    value, std, sens_f, sens_r = (outputs[:, c] for c in columns)
-    if lagging:
-        value = np.maximum(value, 0.0)
-    return (measure_shows(value, std, sigmas) | measure_shifts(value, std, sens_f, front, max_shift)
-            | measure_shifts(value, std, sens_r, rear, max_shift))
 
 
 def steady_antenna_vy(lever: float, rear_slip_gain: float, speed: float, cr: float, yaw_rate: float) -> float:
@@ -143,12 +83,9 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
         hard = (cf <= low * 1.01) | (cf >= high / 1.01) | (cr <= low * 1.01) | (cr >= high / 1.01)
         front, rear = cf_std / cf, cr_std / cr
         worst = np.where(rear > front, rear, front)  # max(front, rear), NaN as Python's max treats it
-        delayed = _measure_fails(outputs, (O_DELAY_ESTIMATE, O_DELAY_ESTIMATE_STD, O_DELAY_SENS_F, O_DELAY_SENS_R),
-                                 front, rear, settings.max_delay_sigmas, settings.max_delay_shift)
-        relaxing = _measure_fails(outputs, (O_RELAXATION, O_RELAXATION_STD, O_RELAXATION_SENS_F, O_RELAXATION_SENS_R),
-                                  front, rear, settings.max_relaxation_sigmas, settings.max_relaxation_shift,
-                                  lagging=True)
-        soft = ~predicted | ~(worst <= settings.max_rel_std) | delayed | relaxing
+        soft = ~predicted | ~(worst <= settings.max_rel_std)
+        for error in MODEL_ERRORS:  # a GNSS delay, a relaxation length, a steering gain left out (model_errors.py)
+            soft |= error.fails(outputs, front, rear, settings)
         s00 = outputs[:, O_S00]
         whitened = np.divide(outputs[:, O_E0], np.sqrt(np.where(s00 > 0.0, s00, 1.0)), where=s00 > 0.0,
                              out=np.zeros(n))
