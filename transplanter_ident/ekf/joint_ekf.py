@@ -58,6 +58,7 @@ from transplanter_ident.ekf.layout import (
     S_MAX_NOISE_SCALE,
     S_MAX_SLIP,
     S_MAX_UTILISATION,
+    S_MEASURE_ERRORS,
     S_METHOD,
     S_MIN_FRICTION,
     S_MIN_SPEED,
@@ -151,6 +152,7 @@ class FilterArrays:
         settings[S_SCALE_UNCERTAINTY] = options.steering_scale_uncertainty
         settings[S_INERTIA_UNCERTAINTY] = options.yaw_inertia_uncertainty
         settings[S_RELAXATION_UNCERTAINTY] = options.relaxation_uncertainty
+        settings[S_MEASURE_ERRORS] = 1.0
         settings[S_SPEED_NOISE] = 1.0 if options.speed_noise else 0.0
         settings[S_DELAY_MEMORY] = options.identifiability_memory
         q, p0 = _state_diagonals(noise, options, config.vehicle.relaxation_length > 0.0)

@@ -126,8 +126,11 @@ from transplanter_ident.ekf.layout import (
     S_LOW,
     S_MAX_GATED,
     S_MAX_INTERVAL,
+    S_MEASURE_ERRORS,
     S_MIN_SPEED,
+    S_RELAXATION_UNCERTAINTY,
     S_SATURATION_MEMORY,
+    S_SCALE_UNCERTAINTY,
     S_SPEED_NOISE,
     V_BACKUP_CHANGE,
     V_BACKUP_MODEL,
@@ -368,14 +371,19 @@ def make_kernels(heading, lagged=False):
         tire0, tire1 = propagate_tire_bias(memo, vehicle, settings, n, nd, h1, antenna_x, updated, out[O_SLIP_F],
                                            out[O_SLIP_R], cf_now, cr_now, log_state, ws)
         g0, g1 = propagate_delay_bias(memo, n, nd, h1, antenna_x, updated, steering_rate, ws)
-        gain0, gain1 = propagate_scale_bias(memo, n, nd, h1, antenna_x, updated, steering, ws)
+        measuring = settings[S_MEASURE_ERRORS] > 0.5
+        gain0 = gain1 = lag0 = 0.0
+        if measuring or settings[S_SCALE_UNCERTAINTY] > 0.0:
+            gain0, gain1 = propagate_scale_bias(memo, n, nd, h1, antenna_x, updated, steering, ws)
         propagate_inertia_bias(memo, settings, n, nd, h1, antenna_x, updated, ws)
-        lag0, _ = propagate_relaxation_bias(memo, n, nd, nb, h1, antenna_x, updated, speed, eps_f, eps_r, ws)
+        if measuring or settings[S_RELAXATION_UNCERTAINTY] > 0.0:
+            lag0, _ = propagate_relaxation_bias(memo, n, nd, nb, h1, antenna_x, updated, speed, eps_f, eps_r, ws)
         keep_speed_cross(memo, speed_variance, antenna_x, updated, ws)
         if updated:
             learn_noise_scales(memo, settings, dt, e0, e1, s00 - r0, s11 - r1, r0, r1, r_noise[Z_VY],
                                r_noise[Z_SECOND])
             score_model_errors(memo, settings, dt, g0, g1, tire0, tire1, e0, e1, s00, s01, s11, det)
+        if updated and measuring:
             score_signature(memo, M_RELAXATION_SCORE, M_RELAXATION_INFORMATION, settings[S_SATURATION_MEMORY], dt, lag0,
                             0.0, e0, 0.0, s00, 0.0, 1.0, s00)  # vy alone (relaxation_signature.py)
             score_signature(memo, M_SCALE_SCORE, M_SCALE_INFORMATION, settings[S_SATURATION_MEMORY], dt, gain0,

@@ -52,7 +52,10 @@ S_MAX_UTILISATION = 37  # the linear range's force limit, a fraction of mu Fz at
 S_SHIFT, S_SHIFT_THRESHOLD = 38, 39  # the directional change test's shift (in std) and alarm level (adaptation.py)
 S_INERTIA_UNCERTAINTY = 40  # relative 1-sigma of the yaw inertia left out of vehicle.iz (adaptation.propagate_inertia_bias)
 S_RELAXATION_UNCERTAINTY = 41  # m, 1-sigma of the relaxation length left out of vehicle.relaxation_length
-N_SETTINGS = 42
+#: 1: the step measures the relaxation length and the steering gain left out (the validity tests them); the
+#: tuner's objective (sequence.objective_n), which reads no validity, sets it to 0
+S_MEASURE_ERRORS = 42
+N_SETTINGS = 43
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6

@@ -37,6 +37,7 @@ from transplanter_ident.ekf.layout import (
     O_S00,
     O_S01,
     O_S11,
+    S_MEASURE_ERRORS,
     S_R_FROM_COVARIANCE,
     WORK_SIZE,
     WORK_SLOTS,
@@ -124,8 +125,11 @@ def make_sequence_kernels(step_n, heading):  # noqa: ANN001, ANN201 - numba clos
         """Tuning objective over a sequence: eq. 21 mean |innovation| (MAE) or Gaussian NLL.
 
         Only epochs with a predicted measurement (UPDATED, GATED, NONLINEAR) count. A diverging (or
-        restarted) filter, or one that never predicts, scores DIVERGENCE_PENALTY.
+        restarted) filter, or one that never predicts, scores DIVERGENCE_PENALTY. The step does not
+        measure the model errors the validity tests (layout.S_MEASURE_ERRORS): no objective reads them.
         """
+        settings = settings.copy()
+        settings[S_MEASURE_ERRORS] = 0.0
         ws = np.zeros((WORK_SLOTS, WORK_SIZE, WORK_SIZE))
         out = np.zeros(N_OUTPUTS)
         r_epoch = np.zeros(2)
