@@ -16,13 +16,19 @@ valid epochs missed the truth more than 5 % of the time, with their conditions.
 linear tire, the project's sensor noise): sine steers only, speed, stiffness, vehicle and GNSS rate
 drawn as above, and an antenna lever arm (x -0.5-1.0 m, y +-0.6 m) the estimator is told.
 
-Run: ``.venv/bin/python bench/random_drives.py [--draws 40] [--seed 0] [--independent]``
+``--relaxation LOW HIGH``: every drive's tires relax over a length drawn from [LOW, HIGH] m (from a
+generator of its own, so the other conditions are those of the same seed without it) that the
+estimator is not told; each draw is then also judged without the validity's relaxation check
+(``validity.max_relaxation_*`` 100), and the pooled line says both.
+
+Run: ``.venv/bin/python bench/random_drives.py [--draws 40] [--seed 0] [--independent] [--relaxation LOW HIGH]``
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -33,13 +39,14 @@ from drives import ValidityFigures, pooled_validity_figures, random_drive  # noq
 from independent_sim import independent_drive  # noqa: E402
 from test_validity import epochs_of  # noqa: E402
 
-from transplanter_ident.config.parameters import EstimatorConfig, VehicleParams  # noqa: E402
+from transplanter_ident.config.parameters import EstimatorConfig, ValiditySettings, VehicleParams  # noqa: E402
 from transplanter_ident.sim.simulator import SimResult, simulate  # noqa: E402
 
 START = 30.0  # s
 
 
-def independent_random_drive(rng: np.random.Generator, seed: int) -> tuple[SimResult, VehicleParams, str]:
+def independent_random_drive(rng: np.random.Generator, seed: int,
+                             relaxation: float = 0.0) -> tuple[SimResult, VehicleParams, str]:
     """A sine drive of the independent simulator with its conditions drawn from ``rng``, its vehicle, a line."""
     speed, amplitude, period = rng.uniform(1.0, 3.0), rng.uniform(5.0, 25.0), rng.uniform(3.0, 14.0)
     friction = 5.0 if rng.random() < 0.4 else rng.uniform(0.3, 0.9)
@@ -49,19 +56,33 @@ def independent_random_drive(rng: np.random.Generator, seed: int) -> tuple[SimRe
                             antenna_x=rng.uniform(-0.5, 1.0), antenna_y=rng.uniform(-0.6, 0.6))
     rate = float(rng.choice([5.0, 10.0]))
     result = independent_drive(seed, speed=speed, amplitude_deg=amplitude, period=period, duration=180.0,
-                               gnss_rate=rate, friction=friction, cf=cf, cr=cr, vehicle=vehicle)
+                               gnss_rate=rate, friction=friction, cf=cf, cr=cr, vehicle=vehicle,
+                               relaxation_length=relaxation)
     return result, vehicle, (f"{speed:.1f} m/s, sine +-{amplitude:.0f} deg/{period:.1f} s, Magic Formula mu "
                              f"{friction:.2f}, Cf {cf:.0f} Cr {cr:.0f}, m {vehicle.mass:.0f} lf {vehicle.lf:.2f} lr "
                              f"{vehicle.lr:.2f}, antenna {vehicle.antenna_x:+.2f}/{vehicle.antenna_y:+.2f} m, "
                              f"{rate:.0f} Hz")
 
 
-def judge(result: SimResult, vehicle: VehicleParams) -> ValidityFigures:
+#: the validity without the relaxation check (``--relaxation``'s comparison)
+UNCHECKED = ValiditySettings(max_relaxation_sigmas=100.0, max_relaxation_shift=100.0)
+
+
+def judge(result: SimResult, vehicle: VehicleParams, settings: ValiditySettings | None = None) -> ValidityFigures:
     """The drive through the estimator configured with its vehicle: validity and coverage from START on."""
     def epochs_for(drive: SimResult):  # noqa: ANN202 - the validity's epochs, with the vehicle's lever arm
         return epochs_of(drive, antenna_x=vehicle.antenna_x, antenna_y=vehicle.antenna_y)
 
-    return pooled_validity_figures([(result, EstimatorConfig(vehicle=vehicle))], epochs_for, START)
+    return pooled_validity_figures([(result, EstimatorConfig(vehicle=vehicle))], epochs_for, START, settings)
+
+
+def pooled_line(rows: list[tuple[ValidityFigures, str]]) -> str:
+    """Valid share of the epochs, and the share of the valid epochs outside +-2 sigma, over the draws."""
+    valid = np.array([f.valid for f, _ in rows])
+    kept = np.array([f.kept for f, _ in rows])
+    missed = float(np.sum(kept * np.array([f.missed for f, _ in rows])) / max(1, kept.sum()))
+    return (f"valid {valid.mean():.2f} of the epochs; valid and outside +-2 sigma {missed:.3f} of the valid epochs; "
+            f"draws ever valid {int(np.sum(valid > 0))}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -69,25 +90,30 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--draws", type=int, default=40)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--independent", action="store_true", help="drives of test/independent_sim.py")
+    parser.add_argument("--relaxation", nargs=2, type=float, metavar=("LOW", "HIGH"),
+                        help="tires relaxing over a length drawn from [LOW, HIGH] m, not told to the estimator")
     args = parser.parse_args(argv)
     rng = np.random.default_rng(args.seed)
-    rows = []
+    lengths = np.random.default_rng(args.seed + 10_000)  # its own stream: the other conditions stay the seed's
+    rows, unchecked = [], []
     for index in range(args.draws):
+        length = float(lengths.uniform(*args.relaxation)) if args.relaxation else 0.0
         if args.independent:
-            result, vehicle, what = independent_random_drive(rng, args.seed * 1000 + index)
+            result, vehicle, what = independent_random_drive(rng, args.seed * 1000 + index, length)
         else:
             sim, what = random_drive(rng, args.seed * 1000 + index)
-            result, vehicle = simulate(sim), sim.vehicle
+            result, vehicle = simulate(replace(sim, relaxation_length=length)), sim.vehicle
+        what += f", relaxation {length:.2f} m" if args.relaxation else ""
         figures = judge(result, vehicle)
         rows.append((figures, what))
+        if args.relaxation:
+            unchecked.append((judge(result, vehicle, UNCHECKED), what))
         shown = f"{figures.missed:.2f}" if figures.valid > 0 else "    -"
         print(f"{index:3d} valid {figures.valid:.2f} missed {shown} final |error| Cf {100 * figures.finals[0]:5.1f} % "
               f"Cr {100 * figures.finals[1]:5.1f} % | {what}", flush=True)
-    valid = np.array([f.valid for f, _ in rows])
-    kept = np.array([f.kept for f, _ in rows])
-    missed = float(np.sum(kept * np.array([f.missed for f, _ in rows])) / max(1, kept.sum()))
-    print(f"{args.draws} draws: valid {valid.mean():.2f} of the epochs; valid and outside +-2 sigma "
-          f"{missed:.3f} of the valid epochs; draws ever valid {int(np.sum(valid > 0))}")
+    print(f"{args.draws} draws: {pooled_line(rows)}")
+    if unchecked:
+        print(f"without the relaxation check: {pooled_line(unchecked)}")
     for figures, what in rows:
         if figures.valid > 0 and figures.missed > 0.05:
             print(f"  missed {figures.missed:.2f} of valid ({figures.valid:.2f} valid), final |error| Cf "

@@ -14,11 +14,10 @@ Left out, 0.3 m at 2 m/s made Cf ~12 % high while the estimate stayed valid in 8
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
 import pytest
-from drives import TRUE_CF, TRUE_CR, judged_figures, run_drive, sine_drive
+from drives import judged_figures, run_drive, sine_drive
 from scipy.integrate import solve_ivp
 from test_validity import epochs_of
 
@@ -181,6 +180,17 @@ def test_without_relaxation_or_with_it_configured_availability_stays(clean: list
         assert valid >= valid_off - 0.03
 
 
-def test_the_truth_stiffness_is_the_simulators() -> None:
-    """The figures above judge against the drive's own stiffness (the identification drive's 8000 / 10000 N/rad)."""
-    assert (TRUE_CF, TRUE_CR) == (8000.0, 10000.0) and math.isclose(sine_drive(0).speed, 2.0)
+def test_diagnostics_and_replay_show_the_measure(relaxing: list) -> None:
+    """/diagnostics "convergence" and replay's model errors line show the last epoch's measure as it is."""
+    from transplanter_ident.ekf.estimate import Estimate
+    from transplanter_ident.evaluation.convergence_report import convergence_report, model_errors_line
+
+    _result, _config, run = relaxing[0]
+    estimate = Estimate.from_row(float(run.t[-1]), run.outputs[-1])
+    length, std = run.outputs[-1, [O_RELAXATION, O_RELAXATION_STD]]
+    values = dict(convergence_report("estimator", estimate, updates=len(run.t), limit=0.05).values)
+    assert values["relaxation_estimate_m"] == f"{length:+.3f} {std:.3f}"
+    front = float(values["relaxation_sensitivity_per_cm"].split()[0])
+    assert front == pytest.approx(0.01 * run.outputs[-1, O_RELAXATION_SENS_F], abs=1e-4)
+    line = model_errors_line(estimate, 0.0)
+    assert f"{length:+.3f} +- {std:.3f} m" in line and "vehicle.relaxation_length (0 m)" in line
