@@ -16,13 +16,13 @@ the timing error it may leave is then in the reported Cf, Cr std.
 ``--estimate-steering-scale`` jointly, :mod:`transplanter_ident.tuning.scale_and_inertia`) on the same
 epochs; with ``nll`` its std goes into ``ekf.yaw_inertia_uncertainty`` (:func:`inertia_calibration`).
 
-``--estimate-relaxation-length`` last finds ``vehicle.relaxation_length`` from the filter's own measure of
-it (:mod:`transplanter_ident.tuning.relaxation`), with the constants found before.
-
 ``--estimate-steering-scale`` then finds ``vehicle.steering_scale`` on those epochs
 (:mod:`transplanter_ident.tuning.steering_scale`; the (bag, scale) pairs of a grid in parallel) and
 hands on the epochs at the estimated scale, cached under the parameters with it; with ``nll`` its
 std goes into ``ekf.steering_scale_uncertainty`` (:func:`scale_calibration`).
+
+``--estimate-relaxation-length`` last finds ``vehicle.relaxation_length`` from the filter's own measure of
+it (:mod:`transplanter_ident.tuning.relaxation`), with the constants found before.
 """
 
 from __future__ import annotations

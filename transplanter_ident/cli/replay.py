@@ -5,8 +5,8 @@ through the node's :class:`~transplanter_ident.measurements.EpochAssembler` into
 filter core (:func:`transplanter_ident.ekf.run_sequence`) runs over them. Then replay
 
 * prints the Table 2 row (max and mean |model output - measurement| of vy and r), the final
-  identified stiffness with its 1-sigma, and the GNSS delay and tire relaxation left out of the
-  configuration as the filter's innovations show them;
+  identified stiffness with its 1-sigma, and the GNSS delay, tire relaxation and steering gain left
+  out of the configuration as the filter's innovations show them;
 * on a simulated bag (``/sim/cornering_stiffness``), prints the final and mean relative
   stiffness error against the truth sampled at the epoch times;
 * prints the rejected samples, counted by reason;

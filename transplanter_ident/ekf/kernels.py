@@ -248,8 +248,9 @@ def make_kernels(heading, lagged=False):
         6. Joseph update (motion only outside the linear tire range); the change tests (change.py); clamp the stiffness.
         7. Roll back if anything became non-finite; re-initialise if that lasts (:mod:`.recovery`); else
            propagate the tire's, the delay's and the steering gain's biases, keep the speed sample's covariance
-           with the state (update.keep_speed_cross), learn R, and score the delay, the tires' saturation and a
-           relaxation length left out from the innovations (the saturation's share corrects Cf, Cr).
+           with the state (update.keep_speed_cross), learn R, and score the delay, the tires' saturation and
+           (layout.S_MEASURE_ERRORS) a relaxation length and a steering gain left out from the innovations
+           (the saturation's share corrects Cf, Cr; evaluation/model_errors.py tests the rest).
         """
         out[:] = 0.0
         # 1.

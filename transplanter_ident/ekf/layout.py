@@ -75,7 +75,7 @@ O_UPDATE_F, O_UPDATE_R = 37, 38
 # m: the tire relaxation length left out of vehicle.relaxation_length as the innovations show it (std 0: none yet),
 # and the relative error of Cf, Cr per metre of it (relaxation_signature.py)
 O_RELAXATION, O_RELAXATION_STD, O_RELAXATION_SENS_F, O_RELAXATION_SENS_R = 39, 40, 41, 42
-O_SCALE_ESTIMATE, O_SCALE_ESTIMATE_STD = 43, 44
+O_SCALE_ESTIMATE, O_SCALE_ESTIMATE_STD = 43, 44  # the steering gain left out as the innovations show it (std 0: none)
 N_OUTPUTS = 45
 
 # memo vector
@@ -107,6 +107,7 @@ M_INERTIA_BIAS = M_SHIFT_LAST + 2
 #: then the online measure of that length (adaptation.score_signature): score and information
 M_RELAXATION_BIAS = M_INERTIA_BIAS + MAX_STATES
 M_RELAXATION_SCORE, M_RELAXATION_INFORMATION = M_RELAXATION_BIAS + MAX_STATES, M_RELAXATION_BIAS + MAX_STATES + 1
+#: the same measure of a steering gain left out (the signature of M_SCALE_BIAS): score and information
 M_SCALE_SCORE, M_SCALE_INFORMATION = M_RELAXATION_INFORMATION + 1, M_RELAXATION_INFORMATION + 2
 N_MEMO = M_SCALE_INFORMATION + 1
 

@@ -20,7 +20,8 @@ fits the innovations to it (O_RELAXATION, its std; memory ``ekf.saturation_memor
 measure's), and the stiffness's share per metre is the sensitivity O_RELAXATION_SENS_F/R. The validity
 uses both, as for a GNSS delay. The fit takes the vy innovation alone: the heading's signature
 integrates the steering sensor's noise (its rate is in eps) into a slow error that shrank the fit
-to ~0.6 of the length at 0.1 deg of steering noise; with vy alone 0.3 m reads 0.28-0.30 m.
+to ~0.6 of the length at 0.1 deg of steering noise (with GNSS noise 10x below the default; an
+instrument, the previous epoch's signature, shrank it alike); with vy alone 0.3 m reads 0.28-0.30 m.
 """
 
 from __future__ import annotations
@@ -44,9 +45,9 @@ def slip_deficits(before, after, vehicle, dt, speed, steering_rate, first_lag, l
     """(eps_f, eps_r): each axle's effective slip rate over the interval / vx, the slip deficit per metre of sigma.
 
     From the open-loop model's motion (layout.N_MODEL) before and after the interval's prediction, and
-    the steering ramp (the offset is the same at both ends). The model, driven by the steering alone, is
-    a regressor without the GNSS noise: the filter's own states carry it, and differenced over an
-    interval it would dilute the fit to half (errors in the variables). With the slip lags active
+    the steering ramp (the offset is the same at both ends). The model, driven by the steering alone,
+    carries none of the GNSS noise that the filter's own states do (on the identification drive the
+    two gave the same fit: what shrank it was the heading channel, see the module). With the slip lags active
     (``lagged_active``, at ``first_lag``) the effective slip is alpha - d, whose rate is vx d /
     ``relaxation``: the mean of the two ends.
     """
