@@ -152,17 +152,17 @@ def _figures(runs: list, settings: ValiditySettings) -> tuple[float, float]:
 
 
 def test_relaxing_drives_are_seldom_valid_and_wrong(relaxing: list) -> None:
-    """0.3 m left out, 8 seeds, from 30 s on: valid and outside +-2 sigma in at most 10 % of the epochs.
+    """0.3 m left out, 8 seeds, from 30 s on: valid and outside +-2 sigma in at most 5 % of the epochs.
 
-    And in at most a quarter of the share without the check (measured ~5 % against ~73 %); the reason
-    names vehicle.relaxation_length.
+    And in at most a tenth of the share without the check (measured 0.8 % against 73 %; 5 % with
+    validity.max_relaxation_shift 1.5); the reason names vehicle.relaxation_length.
     """
     valid, missed = _figures(relaxing, ValiditySettings())
     valid_off, missed_off = _figures(relaxing, CHECK_OFF)
     print(f"\nrelaxation 0.3 m: valid {valid:.2f}, of those missed {missed:.3f}; without the check {valid_off:.2f}, "
           f"{missed_off:.3f}")
     assert valid_off * missed_off >= 0.5  # the condition this test is about
-    assert valid * missed <= 0.1 and valid * missed <= 0.25 * valid_off * missed_off
+    assert valid * missed <= 0.05 and valid * missed <= 0.1 * valid_off * missed_off
     result, config, run = relaxing[0]
     monitor = monitor_for(config, ValiditySettings())
     epochs = epochs_of(result)
@@ -171,7 +171,10 @@ def test_relaxing_drives_are_seldom_valid_and_wrong(relaxing: list) -> None:
 
 
 def test_without_relaxation_or_with_it_configured_availability_stays(clean: list) -> None:
-    """8 seeds, from 30 s on: valid at most 3 points less often than without the check, clean or with 0.3 m set."""
+    """8 seeds, from 30 s on: valid at most 3 points less often than without the check, clean or with 0.3 m set.
+
+    Measured: 98.8 % either way clean, 92.0 % either way with the length set.
+    """
     configured = _runs(0.3, configured=0.3)
     for name, runs in (("clean", clean), ("0.3 m set", configured)):
         valid, _ = _figures(runs, ValiditySettings())

@@ -201,7 +201,7 @@ class ValiditySettings:
     max_delay_sigmas: float = 3.0  # an unconfigured GNSS delay this many std from 0 (the filter's measure) fails
     max_delay_shift: float = 1.5  # the Cf or Cr shift the measured delay implies (lower 1-sigma), in reported std
     max_relaxation_sigmas: float = 3.0  # a tire relaxation length left out, this many std from 0 (the filter's measure)
-    max_relaxation_shift: float = 1.5  # the Cf or Cr shift the measured relaxation implies (lower 1-sigma), in std
+    max_relaxation_shift: float = 1.0  # the Cf or Cr shift the measured relaxation implies (lower 1-sigma), in std
     max_steering_gain_sigmas: float = 3.0  # a steering gain (or yaw inertia) error this many std from 0 fails
     max_steering_gain_shift: float = 1.5  # the Cf or Cr shift the measured gain error implies (lower 1-sigma), in std
     drift_window: float = 90.0  # s of stiffness updates (since the last change alarm) the drift test sums; 0: off

@@ -334,7 +334,7 @@ SCHEMA: tuple[Param, ...] = (
     _float("validity.max_relaxation_sigmas", 3.0, "", "a tire relaxation length left out of "
            "vehicle.relaxation_length, as the filter measures it from its innovations (/diagnostics "
            "relaxation_estimate_m), this many std from zero makes the estimate invalid", 0.5, 100.0, read_only=False),
-    _float("validity.max_relaxation_shift", 1.5, "", "the shift of Cf or Cr that the measured relaxation length "
+    _float("validity.max_relaxation_shift", 1.0, "", "the shift of Cf or Cr that the measured relaxation length "
            "implies (its lower 1-sigma bound times the estimate's sensitivity per metre), in the estimate's "
            "reported std, above which the estimate is not valid", 0.1, 100.0, read_only=False),
     _float("validity.max_steering_gain_sigmas", 3.0, "", "a steering gain left out of vehicle.steering_scale (or a "
