@@ -117,6 +117,8 @@ ROWS: dict[str, dict[str, object]] = {
                                                              "filter_vehicle": VehicleParams(relaxation_length=0.1)},
     "tire relaxation 0.3 m, vehicle.relaxation_length set": {"relaxation_length": 0.3,
                                                              "filter_vehicle": VehicleParams(relaxation_length=0.3)},
+    "tire relaxation 0.3 m, vehicle.relaxation_length 0.32 m": {"relaxation_length": 0.3,
+                                                                "filter_vehicle": VehicleParams(relaxation_length=0.32)},
     "tire relaxation 0.6 m, vehicle.relaxation_length set": {"relaxation_length": 0.6,
                                                              "filter_vehicle": VehicleParams(relaxation_length=0.6)},
     "side slope 2 deg": {"bank_angle": DEG(2.0)},

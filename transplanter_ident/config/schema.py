@@ -112,6 +112,17 @@ def _floats(key: str, default: tuple[float, ...], unit: str, description: str, l
     return Param(key, "float_list", default, unit, description, low, high, read_only=read_only)
 
 
+def _measured_error(name: str, what: str, short: str, diagnostic: str, per: str, sigmas: float, shift: float,
+                    why: str = "") -> tuple[Param, Param]:
+    """``validity.max_<name>_sigmas`` and ``_shift``: the two tests on one measured model error (model_errors.py)."""
+    return (_float(f"validity.max_{name}_sigmas", sigmas, "", f"{what}, as the filter measures it from its "
+                   f"innovations (/diagnostics {diagnostic}), this many std from zero makes the estimate invalid",
+                   0.5, 100.0, read_only=False),
+            _float(f"validity.max_{name}_shift", shift, "", f"the shift of Cf or Cr that the measured {short} implies "
+                   f"(its lower 1-sigma bound times the estimate's sensitivity {per}), in the estimate's reported "
+                   f"std, above which the estimate is not valid{why}", 0.1, 100.0, read_only=False))
+
+
 #: the largest value of any noise entry (Q density or R; absurd beyond, e.g. a run-time Q of 1e300
 #: that made the filter diverge for good): the tuner's search box (tuning/problem.py) lies well inside
 MAX_NOISE = 1.0e6
@@ -324,26 +335,14 @@ SCHEMA: tuple[Param, ...] = (
            "for excitation (or the steering one)", 0.0, 10.0, read_only=False),
     _float("validity.nis_quantile_sigmas", 3.0, "", "the window's NIS sum may exceed its chi^2 mean by this "
            "many of its sigmas", 0.1, 100.0, read_only=False),
-    _float("validity.max_delay_sigmas", 3.0, "", "the GNSS delay left out of gnss.delay, as the filter measures it "
-           "from its innovations (/diagnostics delay_estimate_ms), this many std from zero makes the estimate "
-           "invalid", 0.5, 100.0, read_only=False),
-    _float("validity.max_delay_shift", 1.5, "", "the shift of Cf or Cr that the measured GNSS delay implies (its "
-           "lower 1-sigma bound |delay| - std times the estimate's sensitivity per second of delay), in the "
-           "estimate's reported std, above which the estimate is not valid: a delay the data show but cannot yet "
-           "pin moves the stiffness beyond its band", 0.1, 100.0, read_only=False),
-    _float("validity.max_relaxation_sigmas", 3.0, "", "a tire relaxation length left out of "
-           "vehicle.relaxation_length, as the filter measures it from its innovations (/diagnostics "
-           "relaxation_estimate_m), this many std from zero makes the estimate invalid", 0.5, 100.0, read_only=False),
-    _float("validity.max_relaxation_shift", 1.0, "", "the shift of Cf or Cr that the measured relaxation length "
-           "implies (its lower 1-sigma bound times the estimate's sensitivity per metre), in the estimate's "
-           "reported std, above which the estimate is not valid", 0.1, 100.0, read_only=False),
-    _float("validity.max_steering_gain_sigmas", 3.0, "", "a steering gain left out of vehicle.steering_scale (or a "
-           "yaw inertia off vehicle.iz, which looks alike), as the filter measures it from its innovations "
-           "(/diagnostics steering_gain_estimate_percent), this many std from zero makes the estimate invalid", 0.5,
-           100.0, read_only=False),
-    _float("validity.max_steering_gain_shift", 1.5, "", "the shift of Cf or Cr that the measured steering gain error "
-           "implies (its lower 1-sigma bound times the estimate's sensitivity), in the estimate's reported std, above "
-           "which the estimate is not valid", 0.1, 100.0, read_only=False),
+    *_measured_error("delay", "the GNSS delay left out of gnss.delay", "GNSS delay", "delay_estimate_ms",
+                     "per second of delay", 3.0, 1.5, ": a delay the data show but cannot yet pin moves the stiffness "
+                     "beyond its band"),
+    *_measured_error("relaxation", "a tire relaxation length left out of vehicle.relaxation_length",
+                     "relaxation length", "relaxation_estimate_m", "per metre", 3.0, 1.0),
+    *_measured_error("steering_gain", "a steering gain left out of vehicle.steering_scale (or a yaw inertia off "
+                     "vehicle.iz, which looks alike)", "steering gain error", "steering_gain_estimate_percent",
+                     "per unit of gain", 3.0, 1.5),
     _float("validity.max_autocorrelation", 0.3, "", "lag-1 autocorrelation of the whitened vy innovation above "
            "which the filter is inconsistent (an unconfigured delay)", 0.01, 1.0, read_only=False),
     _float("validity.max_sideslip", 0.35, "rad", "median |vy/vx| above which GNSS velocity and heading disagree "

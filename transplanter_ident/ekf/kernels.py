@@ -307,8 +307,12 @@ def make_kernels(heading, lagged=False):
         predict_inertia_gain(x, vehicle, settings, dt, speed, steering, steering_rate, relaxation, ws, False)
         predict_n(x, model, vehicle, settings, dt, speed, steering, steering_rate, relaxation, ws)
         predict_inertia_gain(x, vehicle, settings, dt, speed, steering, steering_rate, relaxation, ws, True)
-        eps_f, eps_r = slip_deficits(ws[W_VEC, V_BACKUP_MODEL], model, vehicle, dt, speed, steering_rate, nd - lag,
-                                     relaxation > 0.0, relaxation)
+        measuring = settings[S_MEASURE_ERRORS] > 0.5  # the relaxation and gain measures (off in the tuner's objective)
+        relaxing = measuring or settings[S_RELAXATION_UNCERTAINTY] > 0.0
+        eps_f = eps_r = 0.0
+        if relaxing:
+            eps_f, eps_r = slip_deficits(ws[W_VEC, V_BACKUP_MODEL], model, vehicle, dt, speed, steering_rate, nd - lag,
+                                         relaxation > 0.0, relaxation)
         r_model = (model[X_PSI] - psi_model_before) / dt if heading else model[X_R]
         vy_model = model[X_VY]
         adapting = t <= memo[M_ADAPT_UNTIL]
@@ -372,12 +376,11 @@ def make_kernels(heading, lagged=False):
         tire0, tire1 = propagate_tire_bias(memo, vehicle, settings, n, nd, h1, antenna_x, updated, out[O_SLIP_F],
                                            out[O_SLIP_R], cf_now, cr_now, log_state, ws)
         g0, g1 = propagate_delay_bias(memo, n, nd, h1, antenna_x, updated, steering_rate, ws)
-        measuring = settings[S_MEASURE_ERRORS] > 0.5
         gain0 = gain1 = lag0 = 0.0
         if measuring or settings[S_SCALE_UNCERTAINTY] > 0.0:
             gain0, gain1 = propagate_scale_bias(memo, n, nd, h1, antenna_x, updated, steering, ws)
         propagate_inertia_bias(memo, settings, n, nd, h1, antenna_x, updated, ws)
-        if measuring or settings[S_RELAXATION_UNCERTAINTY] > 0.0:
+        if relaxing:
             lag0, _ = propagate_relaxation_bias(memo, n, nd, nb, h1, antenna_x, updated, speed, eps_f, eps_r, ws)
         keep_speed_cross(memo, speed_variance, antenna_x, updated, ws)
         if updated:
