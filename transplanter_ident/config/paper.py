@@ -12,7 +12,8 @@ from transplanter_ident.config.parameters import FilterOptions, NoiseParams
 
 PAPER_OPTIONS = FilterOptions(discretization="euler", stiffness_state="linear", measurement="yaw_rate",
                               process_noise_units="per_step", estimate_steering_offset=False,
-                              linear_range_check=False, change_detection=False, noise_adaptation=False, speed_noise=False,
+                              linear_range_check=False, change_detection=False, noise_adaptation=False,
+                              noise_correlation=False, speed_noise=False,
                               relinearization_window=0.0)
 PAPER_NOISE = NoiseParams(process_noise=(1.0e-4, 1.0e-4, 100.0, 100.0), measurement_noise=(4.0e-4, 1.0e-3),
                           initial_stiffness=(1000.0, 1000.0), initial_covariance=(1.0e-2, 1.0e-2, 1.0e6, 1.0e6))

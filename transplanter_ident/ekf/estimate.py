@@ -20,6 +20,8 @@ from transplanter_ident.ekf.layout import (
     O_E0,
     O_E1,
     O_NIS,
+    O_NOISE_CORRELATION_SECOND,
+    O_NOISE_CORRELATION_VY,
     O_NOISE_SCALE_SECOND,
     O_NOISE_SCALE_VY,
     O_OFFSET,
@@ -121,6 +123,11 @@ class Estimate:
     def noise_factors(self) -> tuple[float, float]:
         """The factors on R (vy, then psi or r) the innovations have shown (adaptation.noise_scale; 1: none)."""
         return self._pair(O_NOISE_SCALE_VY, O_NOISE_SCALE_SECOND, 1.0)
+
+    @property
+    def noise_correlations(self) -> tuple[float, float]:
+        """The lag-1 autocorrelations (vy, then psi or r) that widen R (noise_correlation.py; 0: none)."""
+        return self._pair(O_NOISE_CORRELATION_VY, O_NOISE_CORRELATION_SECOND, 0.0)
 
     @classmethod
     def from_row(cls, t: float, row: np.ndarray) -> Estimate:

@@ -46,6 +46,8 @@ from transplanter_ident.ekf.layout import (
     O_CORRELATION,
     O_CR,
     O_CR_STD,
+    O_NOISE_CORRELATION_SECOND,
+    O_NOISE_CORRELATION_VY,
     O_NOISE_SCALE_SECOND,
     O_NOISE_SCALE_VY,
     O_OFFSET,
@@ -55,6 +57,7 @@ from transplanter_ident.ekf.layout import (
     StepStatus,
 )
 from transplanter_ident.ekf.model import vehicle_array, work_buffer
+from transplanter_ident.ekf.noise_correlation import widening
 
 #: s: the open-loop model restarts from the measured state this often (multiple shooting)
 SEGMENT = 10.0
@@ -70,8 +73,9 @@ def window_information(config: EstimatorConfig, rows: np.ndarray, theta: np.ndar
                        noise_factors: tuple[float, float] = (1.0, 1.0)) -> tuple[np.ndarray, int]:
     """(3, 3) Fisher information of (ln Cf, ln Cr, b) of the epochs ``rows`` at ``theta``, and the epochs used.
 
-    ``noise_factors``: what the filter's R is above the configured one (layout.O_NOISE_SCALE_*), so the
-    information is that of the measurements as noisy as the innovations show them.
+    ``noise_factors``: what the filter's R is above the configured one (layout.O_NOISE_SCALE_* times the
+    widening of O_NOISE_CORRELATION_*), so the information is that of the measurements as noisy, and as
+    correlated in time, as the innovations show them.
     """
     options = config.options
     information = np.zeros((N_INFORMATION, N_INFORMATION))
@@ -181,7 +185,8 @@ class IdentifiabilityGuard:
     def _evaluate(self, rows: np.ndarray, out: np.ndarray, t: float) -> None:
         options = self._config.options
         theta = np.array([math.log(out[O_CF]), math.log(out[O_CR]), out[O_OFFSET]])
-        factors = (float(out[O_NOISE_SCALE_VY]), float(out[O_NOISE_SCALE_SECOND]))
+        factors = (float(out[O_NOISE_SCALE_VY] * widening(out[O_NOISE_CORRELATION_VY])),
+                   float(out[O_NOISE_SCALE_SECOND] * widening(out[O_NOISE_CORRELATION_SECOND])))
         self.information, _ = window_information(self._config, rows, theta, noise_factors=factors)
         limit = options.max_identifiable_rel_std
         self._weak = weak_directions(self.information, options.estimate_steering_offset, limit)

@@ -63,6 +63,7 @@ from transplanter_ident.ekf.layout import (
     S_MIN_FRICTION,
     S_MIN_SPEED,
     S_NOISE_ADAPTATION,
+    S_NOISE_CORRELATION,
     S_NOISE_MEMORY,
     S_P0_OFFSET,
     S_P0_PSI,
@@ -148,6 +149,7 @@ class FilterArrays:
         settings[S_NOISE_ADAPTATION] = 1.0 if options.noise_adaptation else 0.0
         settings[S_NOISE_MEMORY] = options.noise_memory
         settings[S_MAX_NOISE_SCALE] = options.max_noise_scale
+        settings[S_NOISE_CORRELATION] = 1.0 if options.noise_correlation else 0.0
         settings[S_DELAY_UNCERTAINTY] = options.delay_uncertainty
         settings[S_SCALE_UNCERTAINTY] = options.steering_scale_uncertainty
         settings[S_INERTIA_UNCERTAINTY] = options.yaw_inertia_uncertainty

@@ -95,6 +95,8 @@ from transplanter_ident.ekf.layout import (
     O_E1,
     O_NIS,
     O_NIS_CONFIGURED,
+    O_NOISE_CORRELATION_SECOND,
+    O_NOISE_CORRELATION_VY,
     O_NOISE_SCALE_SECOND,
     O_NOISE_SCALE_VY,
     O_OFFSET,
@@ -146,6 +148,7 @@ from transplanter_ident.ekf.layout import (
     Z_VY,
     StepStatus,
 )
+from transplanter_ident.ekf.noise_correlation import correlations, effective_noise, learn_noise_correlation
 from transplanter_ident.ekf.prediction import make_prediction
 from transplanter_ident.ekf.recovery import make_recovery
 from transplanter_ident.ekf.relaxation_signature import propagate_relaxation_bias, slip_deficits
@@ -211,6 +214,7 @@ def make_kernels(heading, lagged=False):
         out[O_SCALE_ESTIMATE], out[O_SCALE_ESTIMATE_STD] = signature_estimate(memo, M_SCALE_SCORE, M_SCALE_INFORMATION)
         out[O_NOISE_SCALE_VY] = noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY)
         out[O_NOISE_SCALE_SECOND] = noise_scale(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND)
+        out[O_NOISE_CORRELATION_VY], out[O_NOISE_CORRELATION_SECOND] = correlations(memo, settings)
 
     @called_kernel
     def restart_motion(x, p, model, memo, settings, status, t, vy_antenna, psi, yaw_rate, out):
@@ -243,12 +247,12 @@ def make_kernels(heading, lagged=False):
            speed or reversing (motion from z).
         3. Predict x and the open-loop model over dt (eq. 12), P = F P F^T + Q dt (+ the speed's noise, update.py).
         4. Innovation, S and NIS with the lever arm in h(x), the heading error in vy and R as the innovations
-           show it (adaptation.noise_scale).
+           show it (its variance, adaptation.noise_scale, and its correlation in time, noise_correlation.py).
         5. Gate; after max_gated gated epochs in a row, re-initialise the motion states.
         6. Joseph update (motion only outside the linear tire range); the change tests (change.py); clamp the stiffness.
         7. Roll back if anything became non-finite; re-initialise if that lasts (:mod:`.recovery`); else
            propagate the tire's, the delay's and the steering gain's biases, keep the speed sample's covariance
-           with the state (update.keep_speed_cross), learn R, and score the delay, the tires' saturation and
+           with the state (update.keep_speed_cross), learn R and its correlation, and score the delay, the tires' saturation and
            (layout.S_MEASURE_ERRORS) a relaxation length and a steering gain left out from the innovations
            (the saturation's share corrects Cf, Cr; evaluation/model_errors.py tests the rest).
         """
@@ -332,8 +336,7 @@ def make_kernels(heading, lagged=False):
         e1 = wrap_angle(psi - x[X_PSI]) if heading else yaw_rate - x[X_R]
         hph00 = p[X_VY, X_VY] + 2.0 * antenna_x * p[X_VY, X_R] + antenna_x * antenna_x * p[X_R, X_R]
         hph11 = p[h1, h1]
-        r0 = r_noise[Z_VY] * noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY)  # R as the innovations show it
-        r1 = r_noise[Z_SECOND] * noise_scale(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND)
+        r0, r1 = effective_noise(memo, settings, r_noise[Z_VY], r_noise[Z_SECOND])  # as the innovations show it
         hph01 = p[X_VY, h1] + antenna_x * p[X_R, h1]
         s00, s01, s11 = innovation_covariance(heading, hph00, hph01, hph11, r0, r1, speed)
         nis, det = normalized_innovation_squared(e0, e1, s00, s01, s11)  # det NaN: S lost definiteness, roll back
@@ -386,6 +389,7 @@ def make_kernels(heading, lagged=False):
         if updated:
             learn_noise_scales(memo, settings, dt, e0, e1, s00 - r0, s11 - r1, r0, r1, r_noise[Z_VY],
                                r_noise[Z_SECOND])
+            learn_noise_correlation(memo, settings, t, dt, e0, e1, s00, s11)
             score_model_errors(memo, settings, dt, g0, g1, tire0, tire1, e0, e1, s00, s01, s11, det)
         if updated and measuring:
             score_signature(memo, M_RELAXATION_SCORE, M_RELAXATION_INFORMATION, settings[S_SATURATION_MEMORY], dt, lag0,

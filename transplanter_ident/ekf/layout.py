@@ -55,7 +55,9 @@ S_RELAXATION_UNCERTAINTY = 41  # m, 1-sigma of the relaxation length left out of
 #: 1: the step measures the relaxation length and the steering gain left out (the validity tests them); the
 #: tuner's objective (sequence.objective_n), which reads no validity, sets it to 0
 S_MEASURE_ERRORS = 42
-N_SETTINGS = 43
+#: 1: R is widened by the innovations' lag-1 autocorrelation (noise_correlation.py); the tuner's objective sets 0
+S_NOISE_CORRELATION = 43
+N_SETTINGS = 44
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6
@@ -76,7 +78,9 @@ O_UPDATE_F, O_UPDATE_R = 37, 38
 # and the relative error of Cf, Cr per metre of it (relaxation_signature.py)
 O_RELAXATION, O_RELAXATION_STD, O_RELAXATION_SENS_F, O_RELAXATION_SENS_R = 39, 40, 41, 42
 O_SCALE_ESTIMATE, O_SCALE_ESTIMATE_STD = 43, 44  # the steering gain left out as the innovations show it (std 0: none)
-N_OUTPUTS = 45
+#: the lag-1 autocorrelation of each measurement's normalised innovations that widens its R (noise_correlation.py)
+O_NOISE_CORRELATION_VY, O_NOISE_CORRELATION_SECOND = 45, 46
+N_OUTPUTS = 47
 
 # memo vector
 M_T_PREV, M_INITIALISED, M_GATED, M_CUSUM, M_ADAPT_UNTIL, M_DIVERGED = 0, 1, 2, 3, 4, 5
@@ -109,7 +113,15 @@ M_RELAXATION_BIAS = M_INERTIA_BIAS + MAX_STATES
 M_RELAXATION_SCORE, M_RELAXATION_INFORMATION = M_RELAXATION_BIAS + MAX_STATES, M_RELAXATION_BIAS + MAX_STATES + 1
 #: the same measure of a steering gain left out (the signature of M_SCALE_BIAS): score and information
 M_SCALE_SCORE, M_SCALE_INFORMATION = M_RELAXATION_INFORMATION + 1, M_RELAXATION_INFORMATION + 2
-N_MEMO = M_SCALE_INFORMATION + 1
+#: the innovations' correlation in time (noise_correlation.py): per measurement (vy, then psi or r) the mean
+#: lag-1 product and the mean square of its normalised innovations, the weighted seconds of data in them, then
+#: the last normalised innovations and their time (pairs only follow one another)
+M_CORRELATION_LAG = M_SCALE_INFORMATION + 1
+M_CORRELATION_POWER = M_CORRELATION_LAG + 2
+M_CORRELATION_SPAN = M_CORRELATION_POWER + 2
+M_CORRELATION_LAST = M_CORRELATION_SPAN + 1
+M_CORRELATION_LAST_T = M_CORRELATION_LAST + 2
+N_MEMO = M_CORRELATION_LAST_T + 1
 
 # the open-loop model's state: the filter's motion states and slip lags, [vy, r, psi, d_f, d_r] or [vy, r, d_f, d_r]
 N_MODEL = N_MOTION_HEADING + N_LAG

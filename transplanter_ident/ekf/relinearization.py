@@ -38,6 +38,8 @@ import numpy as np
 
 from transplanter_ident.ekf.layout import (
     DIVERGENCE_PENALTY,
+    M_CORRELATION_LAG,
+    M_CORRELATION_SPAN,
     M_NOISE_SPAN_SECOND,
     M_NOISE_VY,
     N_MEMO,
@@ -64,6 +66,8 @@ MOVE_SIGMAS = 3.0
 PRIOR_SIGMAS = 5.0
 #: the memo slots of the noise the innovations show (adaptation.learn_noise_scales)
 SENSOR_NOISE = slice(M_NOISE_VY, M_NOISE_SPAN_SECOND + 1)
+#: ... and of their correlation in time (noise_correlation.learn_noise_correlation), not the last pair
+NOISE_CORRELATION = slice(M_CORRELATION_LAG, M_CORRELATION_SPAN + 1)
 #: epochs kept for a new pass at most (a start-up spent standing still ends the window)
 MAX_BUFFER = 20000
 
@@ -199,6 +203,7 @@ class RelinearizationSchedule:
             candidate.p[index, index] = min(p0[index, index], PRIOR_SIGMAS ** 2 * state.p[index, index])
         # the sensors' noise as measured so far describes the sensors, not the linearisation: kept
         candidate.memo[SENSOR_NOISE] = state.memo[SENSOR_NOISE]
+        candidate.memo[NOISE_CORRELATION] = state.memo[NOISE_CORRELATION]
         origin = candidate.x.copy()
         outputs = np.zeros((len(rows), N_OUTPUTS))
         run(rows, candidate.x, candidate.p, candidate.model, candidate.memo, outputs)

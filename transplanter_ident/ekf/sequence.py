@@ -38,6 +38,7 @@ from transplanter_ident.ekf.layout import (
     O_S01,
     O_S11,
     S_MEASURE_ERRORS,
+    S_NOISE_CORRELATION,
     S_R_FROM_COVARIANCE,
     WORK_SIZE,
     WORK_SLOTS,
@@ -126,10 +127,13 @@ def make_sequence_kernels(step_n, heading):  # noqa: ANN001, ANN201 - numba clos
 
         Only epochs with a predicted measurement (UPDATED, GATED, NONLINEAR) count. A diverging (or
         restarted) filter, or one that never predicts, scores DIVERGENCE_PENALTY. The step does not
-        measure the model errors the validity tests (layout.S_MEASURE_ERRORS): no objective reads them.
+        measure the model errors the validity tests (layout.S_MEASURE_ERRORS): no objective reads them. Nor
+        does it widen R by the innovations' correlation (layout.S_NOISE_CORRELATION): the objective scores R
+        as the white noise it is configured as, and the filter widens the tuned R at run time.
         """
         settings = settings.copy()
         settings[S_MEASURE_ERRORS] = 0.0
+        settings[S_NOISE_CORRELATION] = 0.0
         ws = np.zeros((WORK_SLOTS, WORK_SIZE, WORK_SIZE))
         out = np.zeros(N_OUTPUTS)
         r_epoch = np.zeros(2)

@@ -39,6 +39,7 @@ def convergence_report(node: str, estimate: Estimate | None, updates: int, limit
               ("tire_saturation_bias", "{:.4f} {:.4f}".format(*estimate.tire_bias)),
               ("tire_saturation", "{:.3f} {:.3f}".format(*estimate.saturation)),
               ("noise_factors", "{:.3f} {:.3f}".format(*estimate.noise_factors)),
+              ("innovation_correlation", "{:.3f} {:.3f}".format(*estimate.noise_correlations)),
               ("delay_sensitivity_per_ms", "{:+.4f} {:+.4f}".format(*(1.0e-3 * v for v in estimate.delay_sensitivity))),
               ("delay_estimate_ms", "{:+.1f} {:.1f}".format(*(1.0e3 * v for v in estimate.delay_estimate))),
               ("relaxation_estimate_m", "{:+.3f} {:.3f}".format(*estimate.relaxation_estimate)),

@@ -1,0 +1,103 @@
+"""Beyond the paper: GNSS errors correlated in time widen R (DESIGN.md section 7; eq. 12's R).
+
+The paper's EKF (eqs. 9-14) takes the measurement noise as white. A receiver that smooths its
+velocity or heading (its own filter, slow multipath) makes the errors of successive epochs alike,
+and the stiffness, read off responses seconds long, then averages far fewer independent errors than
+the filter counts: its band is too narrow. For errors of lag-1 autocorrelation rho (a first-order
+Gauss-Markov error sampled at the GNSS rate) the spectral density at low frequency is that of white
+noise of variance R (1 + rho) / (1 - rho), so each measurement's R is widened by that factor:
+
+* :func:`learn_noise_correlation`: rho of each measurement (vy at the antenna, then psi or r), from
+  its normalised innovations w = e / sqrt(S_ii) of successive accepted epochs,
+  rho = E[w_k w_k-1] / E[w_k^2], over ``ekf.noise_memory`` (a weighted mean, then exponential);
+* :func:`correlation_factor`: (1 + rho) / (1 - rho), rho within [0, ``MAX_CORRELATION``], 1 until
+  ``CORRELATION_SETTLE`` s of pairs were seen or with ``ekf.noise_correlation`` off;
+* :func:`effective_noise`: R as the step takes it, the configured R times the factor the innovations'
+  variance shows (adaptation.noise_scale) times this one.
+
+The factor at zero frequency is conservative: the steering's seconds-long swings see a little less.
+White errors give rho ~ 0 +- 1 / sqrt(n) and so a factor of a few percent at most.
+"""
+
+from __future__ import annotations
+
+from transplanter_ident.ekf.adaptation import noise_scale
+from transplanter_ident.ekf.layout import (
+    M_CORRELATION_LAG,
+    M_CORRELATION_LAST,
+    M_CORRELATION_LAST_T,
+    M_CORRELATION_POWER,
+    M_CORRELATION_SPAN,
+    M_NOISE_SECOND,
+    M_NOISE_SPAN_SECOND,
+    M_NOISE_SPAN_VY,
+    M_NOISE_VY,
+    S_NOISE_CORRELATION,
+    S_NOISE_MEMORY,
+)
+from transplanter_ident.jit import inline_kernel
+
+#: the largest lag-1 autocorrelation taken (a factor of 19 on R); beyond it the validity's check decides
+MAX_CORRELATION = 0.9
+#: s of paired epochs before the factor departs from 1 (a few pairs say little)
+CORRELATION_SETTLE = 10.0
+
+
+@inline_kernel
+def correlation_of(memo, channel):
+    """Rho of one measurement (0: vy, 1: the second) as measured so far, within [0, MAX_CORRELATION]."""
+    power = memo[M_CORRELATION_POWER + channel]
+    if not power > 0.0:
+        return 0.0
+    return min(max(memo[M_CORRELATION_LAG + channel] / power, 0.0), MAX_CORRELATION)
+
+
+@inline_kernel
+def widening(rho):
+    """(1 + rho) / (1 - rho): white noise of R times this has the low-frequency power of R's noise at lag-1 rho."""
+    return (1.0 + rho) / (1.0 - rho)
+
+
+@inline_kernel
+def correlation_factor(memo, settings, channel):
+    """The factor :func:`widening` on R of one measurement (0: vy, 1: the second); 1 until measured."""
+    if settings[S_NOISE_CORRELATION] < 0.5 or memo[M_CORRELATION_SPAN] < CORRELATION_SETTLE:
+        return 1.0
+    return widening(correlation_of(memo, channel))
+
+
+@inline_kernel
+def correlations(memo, settings):
+    """(rho of vy, rho of the second measurement) that widen R now (both 0 with the option off or before they settle)."""
+    if correlation_factor(memo, settings, 0) == 1.0 and correlation_factor(memo, settings, 1) == 1.0:
+        return 0.0, 0.0
+    return correlation_of(memo, 0), correlation_of(memo, 1)
+
+
+@inline_kernel
+def effective_noise(memo, settings, r_vy, r_second):
+    """(R of vy, R of the second measurement) as the step takes them, from the configured (or reported) ones."""
+    return (r_vy * noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY) * correlation_factor(memo, settings, 0),
+            r_second * noise_scale(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND)
+            * correlation_factor(memo, settings, 1))
+
+
+@inline_kernel
+def learn_noise_correlation(memo, settings, t, dt, e0, e1, s00, s11):
+    """One accepted epoch: pair its normalised innovations with the last ones if those were the previous epoch's.
+
+    e0, e1: the innovations; s00, s11: their variances in S. A gated or skipped epoch breaks the pairs.
+    """
+    if settings[S_NOISE_CORRELATION] < 0.5 or not (s00 > 0.0 and s11 > 0.0):
+        return
+    w0, w1 = e0 / s00 ** 0.5, e1 / s11 ** 0.5
+    if memo[M_CORRELATION_LAST_T] >= t - dt - 1.0e-6 and memo[M_CORRELATION_LAST_T] < t:
+        span = min(memo[M_CORRELATION_SPAN] + dt, settings[S_NOISE_MEMORY])
+        gain = dt / span
+        memo[M_CORRELATION_LAG] += gain * (w0 * memo[M_CORRELATION_LAST] - memo[M_CORRELATION_LAG])
+        memo[M_CORRELATION_LAG + 1] += gain * (w1 * memo[M_CORRELATION_LAST + 1] - memo[M_CORRELATION_LAG + 1])
+        memo[M_CORRELATION_POWER] += gain * (w0 * w0 - memo[M_CORRELATION_POWER])
+        memo[M_CORRELATION_POWER + 1] += gain * (w1 * w1 - memo[M_CORRELATION_POWER + 1])
+        memo[M_CORRELATION_SPAN] = span
+    memo[M_CORRELATION_LAST], memo[M_CORRELATION_LAST + 1] = w0, w1
+    memo[M_CORRELATION_LAST_T] = t
