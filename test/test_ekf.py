@@ -44,7 +44,8 @@ from transplanter_ident.sim.simulator import SimConfig
 
 TRUE_CF, TRUE_CR = 8000.0, 10000.0
 STIFFNESS = [X_THETA_F, X_THETA_R]  # the two stiffness states
-DEFAULT = EstimatorConfig()
+#: the filter's defaults but R as configured or adapted, white (the widening is test_noise_correlation.py's)
+DEFAULT = EstimatorConfig(options=dataclasses.replace(EstimatorConfig().options, noise_correlation=False))
 CONFIGS = {"default": DEFAULT, "paper": paper_config()}
 INJECT = 100  # epoch index (t = 20 s) at which bad input is injected, after the initial convergence
 

@@ -95,7 +95,8 @@ def test_the_kernel_learns_as_a_plain_loop_over_its_outputs() -> None:
     One pass (``ekf.relinearization_window: 0``): a re-linearised pass goes on from what it learned over
     epochs whose outputs were published by the pass before it.
     """
-    config = EstimatorConfig(options=replace(EstimatorConfig().options, relinearization_window=0.0))
+    config = EstimatorConfig(options=replace(EstimatorConfig().options, relinearization_window=0.0,
+                                             noise_correlation=False))  # R widened by rho: test_noise_correlation.py
     options, r = config.options, np.array(config.noise.measurement_noise)
     run = run_drive(sine_drive(3, noise=noisier(2.0, 1.5)), config)
     out = run.outputs

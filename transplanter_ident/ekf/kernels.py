@@ -39,7 +39,6 @@ from transplanter_ident.ekf.adaptation import (
     forget_motion_bias,
     held_bias_variance,
     known_to,
-    learn_noise_scales,
     noise_scale,
     propagate_delay_bias,
     propagate_inertia_bias,
@@ -148,7 +147,7 @@ from transplanter_ident.ekf.layout import (
     Z_VY,
     StepStatus,
 )
-from transplanter_ident.ekf.noise_correlation import correlations, effective_noise, learn_noise_correlation
+from transplanter_ident.ekf.noise_correlation import correlations, effective_noise, learn_noise
 from transplanter_ident.ekf.prediction import make_prediction
 from transplanter_ident.ekf.recovery import make_recovery
 from transplanter_ident.ekf.relaxation_signature import propagate_relaxation_bias, slip_deficits
@@ -251,10 +250,9 @@ def make_kernels(heading, lagged=False):
         5. Gate; after max_gated gated epochs in a row, re-initialise the motion states.
         6. Joseph update (motion only outside the linear tire range); the change tests (change.py); clamp the stiffness.
         7. Roll back if anything became non-finite; re-initialise if that lasts (:mod:`.recovery`); else
-           propagate the tire's, the delay's and the steering gain's biases, keep the speed sample's covariance
-           with the state (update.keep_speed_cross), learn R and its correlation, and score the delay, the tires' saturation and
-           (layout.S_MEASURE_ERRORS) a relaxation length and a steering gain left out from the innovations
-           (the saturation's share corrects Cf, Cr; evaluation/model_errors.py tests the rest).
+           propagate the tire's, the delay's and the steering gain's biases, keep the speed sample's covariance (update.py),
+           learn R and rho, and score the delay, the tires' saturation and (layout.S_MEASURE_ERRORS) a relaxation
+           length and a steering gain left out (the saturation's share corrects Cf, Cr; model_errors.py tests the rest).
         """
         out[:] = 0.0
         # 1.
@@ -387,9 +385,7 @@ def make_kernels(heading, lagged=False):
             lag0, _ = propagate_relaxation_bias(memo, n, nd, nb, h1, antenna_x, updated, speed, eps_f, eps_r, ws)
         keep_speed_cross(memo, speed_variance, antenna_x, updated, ws)
         if updated:
-            learn_noise_scales(memo, settings, dt, e0, e1, s00 - r0, s11 - r1, r0, r1, r_noise[Z_VY],
-                               r_noise[Z_SECOND])
-            learn_noise_correlation(memo, settings, t, dt, e0, e1, s00, s11)
+            learn_noise(memo, settings, t, dt, e0, e1, s00, s11, r0, r1, r_noise[Z_VY], r_noise[Z_SECOND])
             score_model_errors(memo, settings, dt, g0, g1, tire0, tire1, e0, e1, s00, s01, s11, det)
         if updated and measuring:
             score_signature(memo, M_RELAXATION_SCORE, M_RELAXATION_INFORMATION, settings[S_SATURATION_MEMORY], dt, lag0,

@@ -55,7 +55,7 @@ S_RELAXATION_UNCERTAINTY = 41  # m, 1-sigma of the relaxation length left out of
 #: 1: the step measures the relaxation length and the steering gain left out (the validity tests them); the
 #: tuner's objective (sequence.objective_n), which reads no validity, sets it to 0
 S_MEASURE_ERRORS = 42
-#: 1: R is widened by the innovations' lag-1 autocorrelation (noise_correlation.py); the tuner's objective sets 0
+#: 1: each R is widened by its innovations' lag-1 autocorrelation (noise_correlation.py); the tuner's objective sets 0
 S_NOISE_CORRELATION = 43
 N_SETTINGS = 44
 

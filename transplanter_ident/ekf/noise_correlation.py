@@ -12,16 +12,24 @@ noise of variance R (1 + rho) / (1 - rho), so each measurement's R is widened by
   rho = E[w_k w_k-1] / E[w_k^2], over ``ekf.noise_memory`` (a weighted mean, then exponential);
 * :func:`correlation_factor`: (1 + rho) / (1 - rho), rho within [0, ``MAX_CORRELATION``], 1 until
   ``CORRELATION_SETTLE`` s of pairs were seen or with ``ekf.noise_correlation`` off;
+* :func:`learn_noise`: after an accepted epoch, both measures of R (with adaptation.learn_noise_scales);
 * :func:`effective_noise`: R as the step takes it, the configured R times the factor the innovations'
   variance shows (adaptation.noise_scale) times this one.
 
 The factor at zero frequency is conservative: the steering's seconds-long swings see a little less.
 White errors give rho ~ 0 +- 1 / sqrt(n) and so a factor of a few percent at most.
+
+Off by default (``ekf.noise_correlation``): the heading's innovations carry the model's own
+correlation too (steering noise integrated; 0.05-0.2 on clean drives), and its R enters the
+velocity's S (vx^2 R_psi), so the velocity's measured R can fall with it: on one drive of GNSS 3x
+noisier than R (test_noise_adaptation.py, seed 8) R_psi went to x80, R_v to x1.9, and the change
+test raised 18 false alarms. Widening the velocity's R alone did not narrow the misses. Turn it on,
+with ``validity.max_autocorrelation`` 0.6, for a receiver known to smooth its output.
 """
 
 from __future__ import annotations
 
-from transplanter_ident.ekf.adaptation import noise_scale
+from transplanter_ident.ekf.adaptation import learn_noise_scales, noise_scale
 from transplanter_ident.ekf.layout import (
     M_CORRELATION_LAG,
     M_CORRELATION_LAST,
@@ -101,3 +109,13 @@ def learn_noise_correlation(memo, settings, t, dt, e0, e1, s00, s11):
         memo[M_CORRELATION_SPAN] = span
     memo[M_CORRELATION_LAST], memo[M_CORRELATION_LAST + 1] = w0, w1
     memo[M_CORRELATION_LAST_T] = t
+
+
+@inline_kernel
+def learn_noise(memo, settings, t, dt, e0, e1, s00, s11, r0, r1, configured0, configured1):
+    """After an accepted epoch: R's variance as the innovations show it (adaptation.learn_noise_scales) and rho.
+
+    r0, r1: R as the step took it (:func:`effective_noise`); configured0, configured1: as configured (or reported).
+    """
+    learn_noise_scales(memo, settings, dt, e0, e1, s00 - r0, s11 - r1, r0, r1, configured0, configured1)
+    learn_noise_correlation(memo, settings, t, dt, e0, e1, s00, s11)
