@@ -288,12 +288,9 @@ SCHEMA: tuple[Param, ...] = (
           "alarms nor narrow the band"),
     _float("ekf.noise_memory", 60.0, "s", "time constant of the innovations' measure of R", 1.0, 3600.0),
     _float("ekf.max_noise_scale", 100.0, "", "largest factor on R (variance) the innovations may set", 1.0, 1.0e4),
-    _bool("ekf.noise_correlation", False, "widen each measurement's R by (1 + rho) / (1 - rho), rho the lag-1 "
-          "autocorrelation of its normalised innovations over ekf.noise_memory (0-0.9): GNSS errors correlated in "
-          "time (a receiver that smooths its velocity or heading) carry less information than white ones, and the "
-          "band would otherwise be too narrow (/diagnostics innovation_correlation); for such a receiver, with "
-          "validity.max_autocorrelation 0.6. Off by default: with GNSS far noisier than R it can raise false "
-          "change alarms"),
+    _bool("ekf.noise_correlation", False, "widen each R by (1 + rho) / (1 - rho), rho the lag-1 autocorrelation of its "
+          "normalised innovations (ekf.noise_memory): for a receiver that smooths its output (errors correlated in "
+          "time), with validity.max_autocorrelation 0.6; off: with GNSS far noisier than R it raised false alarms"),
     _bool("ekf.change_detection", True, "CUSUM test of the innovations for a stiffness change (surface)"),
     _float("ekf.change_scale", 2.0, "", "innovation variance ratio the change test looks for (4 before: with GNSS "
            "noise 2x the default and R set to it, a 40 % drop went unseen)", 1.01, 100.0),

@@ -185,8 +185,9 @@ class IdentifiabilityGuard:
     def _evaluate(self, rows: np.ndarray, out: np.ndarray, t: float) -> None:
         options = self._config.options
         theta = np.array([math.log(out[O_CF]), math.log(out[O_CR]), out[O_OFFSET]])
-        factors = (float(out[O_NOISE_SCALE_VY] * widening(out[O_NOISE_CORRELATION_VY])),
-                   float(out[O_NOISE_SCALE_SECOND] * widening(out[O_NOISE_CORRELATION_SECOND])))
+        widen = getattr(widening, "py_func", widening)  # the kernel's formula in Python: nothing to compile
+        factors = (float(out[O_NOISE_SCALE_VY] * widen(out[O_NOISE_CORRELATION_VY])),
+                   float(out[O_NOISE_SCALE_SECOND] * widen(out[O_NOISE_CORRELATION_SECOND])))
         self.information, _ = window_information(self._config, rows, theta, noise_factors=factors)
         limit = options.max_identifiable_rel_std
         self._weak = weak_directions(self.information, options.estimate_steering_offset, limit)
