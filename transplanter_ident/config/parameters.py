@@ -87,7 +87,7 @@ class FilterOptions:
     noise_adaptation: bool = True  # R raised to what the innovations show (covariance matching), never lowered
     noise_memory: float = 60.0  # s, time constant of that measure
     max_noise_scale: float = 100.0  # largest factor on R it may set
-    noise_correlation: bool = False  # R widened by the innovations' lag-1 autocorrelation (GNSS errors correlated in time)
+    noise_correlation: bool = True  # R widened by the innovations' lag-1 autocorrelation (GNSS errors correlated in time)
     change_detection: bool = True  # the surface-change CUSUM on the innovations
     change_scale: float = 2.0  # innovation variance ratio the surface-change CUSUM tests for
     change_threshold: float = 8.0  # CUSUM alarm level (log-likelihood ratio)
@@ -192,7 +192,7 @@ class ValiditySettings:
     min_steering_std: float = 0.02  # rad: steering standard deviation over the window
     min_yaw_rate_std: float = 0.02  # rad/s
     nis_quantile_sigmas: float = 3.0  # the windowed NIS sum may exceed its mean by this many sigmas
-    max_autocorrelation: float = 0.3  # lag-1 autocorrelation of the whitened vy innovation
+    max_autocorrelation: float = 0.6  # lag-1 autocorrelation of the whitened vy innovation
     max_sideslip: float = 0.35  # rad: |vy / vx| beyond it the velocity and heading disagree
     course_ratio: float = 0.2  # RMS vy at the antenna below this fraction of (lr + ax) RMS r: course over ground
     hold_on: float = 3.0  # s every check must hold before valid

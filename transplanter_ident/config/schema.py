@@ -288,9 +288,9 @@ SCHEMA: tuple[Param, ...] = (
           "alarms nor narrow the band"),
     _float("ekf.noise_memory", 60.0, "s", "time constant of the innovations' measure of R", 1.0, 3600.0),
     _float("ekf.max_noise_scale", 100.0, "", "largest factor on R (variance) the innovations may set", 1.0, 1.0e4),
-    _bool("ekf.noise_correlation", False, "widen each R by (1 + rho) / (1 - rho), rho the lag-1 autocorrelation of its "
-          "normalised innovations (ekf.noise_memory): for a receiver that smooths its output (errors correlated in "
-          "time), with validity.max_autocorrelation 0.6; off: with GNSS far noisier than R it raised false alarms"),
+    _bool("ekf.noise_correlation", True, "widen each R by (1 + rho) / (1 - rho), rho the lag-1 autocorrelation of its "
+          "normalised innovations over ekf.noise_memory (0-0.9): GNSS errors correlated in time (a receiver that "
+          "smooths its output) carry less information than white ones (/diagnostics innovation_correlation)"),
     _bool("ekf.change_detection", True, "CUSUM test of the innovations for a stiffness change (surface)"),
     _float("ekf.change_scale", 2.0, "", "innovation variance ratio the change test looks for (4 before: with GNSS "
            "noise 2x the default and R set to it, a 40 % drop went unseen)", 1.01, 100.0),
@@ -346,9 +346,9 @@ SCHEMA: tuple[Param, ...] = (
     *_measured_error("steering_gain", "a steering gain left out of vehicle.steering_scale (or a yaw inertia off "
                      "vehicle.iz, which looks alike)", "steering gain error", "steering_gain_estimate_percent",
                      "per unit of gain", 3.0, 1.5),
-    _float("validity.max_autocorrelation", 0.3, "", "lag-1 autocorrelation of the whitened vy innovation above "
-           "which the filter is inconsistent (an unconfigured delay, GNSS errors correlated in time); 0.6 with "
-           "ekf.noise_correlation, whose widening of R holds the shorter correlations",
+    _float("validity.max_autocorrelation", 0.6, "", "lag-1 autocorrelation of the whitened vy innovation above "
+           "which the filter is inconsistent (an unconfigured delay, GNSS errors correlated longer than "
+           "ekf.noise_correlation's widening of R holds; 0.3 without it)",
            0.01, 1.0, read_only=False),
     _float("validity.max_sideslip", 0.35, "rad", "median |vy/vx| above which GNSS velocity and heading disagree "
            "(a frame mix-up)", 0.01, 1.6, read_only=False),

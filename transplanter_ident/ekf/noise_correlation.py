@@ -19,12 +19,9 @@ noise of variance R (1 + rho) / (1 - rho), so each measurement's R is widened by
 The factor at zero frequency is conservative: the steering's seconds-long swings see a little less.
 White errors give rho ~ 0 +- 1 / sqrt(n) and so a factor of a few percent at most.
 
-Off by default (``ekf.noise_correlation``): the heading's innovations carry the model's own
-correlation too (steering noise integrated; 0.05-0.2 on clean drives), and its R enters the
-velocity's S (vx^2 R_psi), so the velocity's measured R can fall with it: on one drive of GNSS 3x
-noisier than R (test_noise_adaptation.py, seed 8) R_psi went to x80, R_v to x1.9, and the change
-test raised 18 false alarms. Widening the velocity's R alone did not narrow the misses. Turn it on,
-with ``validity.max_autocorrelation`` 0.6, for a receiver known to smooth its output.
+R's variance is still matched (adaptation.learn_noise_scales) against S with R unwidened: the
+heading's R enters the velocity's S (vx^2 R_psi), and matched against the widened one the velocity's
+measured R fell (GNSS 3x noisier than R, one drive: R_psi x80, R_v x1.9, 18 false change alarms).
 """
 
 from __future__ import annotations
@@ -43,6 +40,7 @@ from transplanter_ident.ekf.layout import (
     S_NOISE_CORRELATION,
     S_NOISE_MEMORY,
 )
+from transplanter_ident.ekf.sequence import innovation_covariance
 from transplanter_ident.jit import inline_kernel
 
 #: the largest lag-1 autocorrelation taken (a factor of 19 on R); beyond it the validity's check decides
@@ -112,10 +110,18 @@ def learn_noise_correlation(memo, settings, t, dt, e0, e1, s00, s11):
 
 
 @inline_kernel
-def learn_noise(memo, settings, t, dt, e0, e1, s00, s11, r0, r1, configured0, configured1):
+def learn_noise(memo, settings, heading, t, dt, speed, e0, e1, hph00, hph01, hph11, s00, s11, configured0,
+                configured1):
     """After an accepted epoch: R's variance as the innovations show it (adaptation.learn_noise_scales) and rho.
 
-    r0, r1: R as the step took it (:func:`effective_noise`); configured0, configured1: as configured (or reported).
+    R's variance is matched against S with R unwidened: H P^- H^T (hph*) plus the configured (or reported)
+    R (configured0, configured1) times the learned variance factors. With the widened R the heading's share
+    of the velocity's S (vx^2 R_psi) would be overstated and the velocity's measured R would fall (GNSS 3x
+    noisier than R: R_v x1.9 where it is x9, and false change alarms). rho normalises by the step's S
+    (s00, s11, as published): a slowly varying scale, which the ratio does not see.
     """
-    learn_noise_scales(memo, settings, dt, e0, e1, s00 - r0, s11 - r1, r0, r1, configured0, configured1)
+    r0 = configured0 * noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY)
+    r1 = configured1 * noise_scale(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND)
+    white00, _, white11 = innovation_covariance(heading, hph00, hph01, hph11, r0, r1, speed)
+    learn_noise_scales(memo, settings, dt, e0, e1, white00 - r0, white11 - r1, r0, r1, configured0, configured1)
     learn_noise_correlation(memo, settings, t, dt, e0, e1, s00, s11)
