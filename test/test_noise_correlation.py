@@ -176,3 +176,16 @@ def test_the_variance_of_r_is_matched_unwidened() -> None:
         result = simulate(sine_drive(seed, noise=noise))
         widened, white = (run_drive(result, config).outputs[-1, O_NOISE_SCALE_VY] for config in (WIDENED, WHITE))
         assert abs(widened / white - 1.0) <= 0.15, (seed, widened, white)
+
+
+def test_diagnostics_show_the_correlations() -> None:
+    """/diagnostics "convergence" shows the last epoch's rho of vy and of the heading as they are (0.5 s errors)."""
+    from transplanter_ident.ekf.estimate import Estimate
+    from transplanter_ident.evaluation.convergence_report import convergence_report
+
+    run = runs(0.5, True)[0]
+    estimate = Estimate.from_row(float(run.t[-1]), run.outputs[-1])
+    rho = run.outputs[-1, [O_NOISE_CORRELATION_VY, O_NOISE_CORRELATION_SECOND]]
+    values = dict(convergence_report("estimator", estimate, updates=len(run.t), limit=0.05).values)
+    assert values["innovation_correlation"] == f"{rho[0]:.3f} {rho[1]:.3f}"
+    assert min(rho) > 0.3  # the drive's errors are correlated: the line shows a measure, not the default 0
