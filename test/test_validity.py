@@ -100,14 +100,17 @@ def test_the_weakly_identifiable_and_the_delayed_drives_are_flagged() -> None:
 def test_correlated_gnss_errors_are_flagged_and_named(name: str) -> None:
     """GNSS errors correlated in time (Gauss-Markov, the white case's 1-sigma) narrow the band below the error.
 
-    Without the innovations' autocorrelation check they were valid in 47 % / 35 % of the epochs
-    after 30 s, with the truth outside +-2 sigma in 9 % / 23 % of those
-    (``bench/robustness_sweep.py --validity max_autocorrelation=1``). Required, over 10 seeds: valid in
-    <= 5 % of the epochs after 30 s, the online reason names the correlation, and the estimate is
-    still close (final error median <= 4 %: 1.9 % / 1.8 % measured).
+    Taken as white, without the innovations' autocorrelation check, they were valid in 47 % / 35 % of
+    the epochs after 30 s, with the truth outside +-2 sigma in 9 % / 23 % of those
+    (``bench/robustness_sweep.py --option noise_correlation=0 --validity max_autocorrelation=1``). With
+    R widened by their correlation (ekf.noise_correlation) and the check at 0.6, over 10 seeds: the 0.5 s
+    drives are valid in 13 % of the epochs, none of those outside +-2 sigma; the 2 s ones never.
+    Required: valid epochs outside +-2 sigma <= 5 % (pooled), the online reason names the correlation,
+    and the estimate is still close (final error median <= 4 %: 1.5 % / 2.0 % measured).
     """
     runs = scenario_runs(name)
-    assert np.mean([np.mean(valid[run.t >= 30.0]) for run, valid in runs]) <= 0.05
+    missed = [m for run, valid in runs for m in (~np.logical_and(*run.covered()))[valid & (run.t >= 30.0)]]
+    assert not missed or np.mean(missed) <= 0.05, (np.mean(missed), len(missed))
     assert np.median([abs(e) for run, _ in runs for e in run.final_errors()]) <= 0.04
     result = simulate(sine_drive(0, **SCENARIOS[name]))
     epochs = epochs_of(result)

@@ -385,8 +385,7 @@ def make_kernels(heading, lagged=False):
             lag0, _ = propagate_relaxation_bias(memo, n, nd, nb, h1, antenna_x, updated, speed, eps_f, eps_r, ws)
         keep_speed_cross(memo, speed_variance, antenna_x, updated, ws)
         if updated:
-            learn_noise(memo, settings, heading, t, dt, speed, e0, e1, hph00, hph01, hph11, s00, s11, r_noise[Z_VY],
-                        r_noise[Z_SECOND])
+            learn_noise(memo, settings, heading, t, dt, speed, e0, e1, hph00, hph01, hph11, r_noise[Z_VY], r_noise[Z_SECOND])
             score_model_errors(memo, settings, dt, g0, g1, tire0, tire1, e0, e1, s00, s01, s11, det)
         if updated and measuring:
             score_signature(memo, M_RELAXATION_SCORE, M_RELAXATION_INFORMATION, settings[S_SATURATION_MEMORY], dt, lag0,

@@ -8,8 +8,12 @@ Gauss-Markov error sampled at the GNSS rate) the spectral density at low frequen
 noise of variance R (1 + rho) / (1 - rho), so each measurement's R is widened by that factor:
 
 * :func:`learn_noise_correlation`: rho of each measurement (vy at the antenna, then psi or r), from
-  its normalised innovations w = e / sqrt(S_ii) of successive accepted epochs,
-  rho = E[w_k w_k-1] / E[w_k^2], over ``ekf.noise_memory`` (a weighted mean, then exponential);
+  its innovations normalised by S with R unwidened, w = e / sqrt(S_ii), of successive accepted epochs,
+  rho = E[w_k w_k-1] / max(E[w_k^2], 1), over ``ekf.noise_memory`` (a weighted mean, then exponential).
+  Against S, not against the innovations' own mean square: a sensor quieter than R leaves innovations
+  that are mostly the model's own error while the states converge, correlated but far smaller than S,
+  and taken as noise correlated by their own measure they widened R up to 19x (GNSS 4x quieter than
+  R, a gentle sine with a 1 deg offset: valid 13 % of the epochs, 67 % white);
 * :func:`correlation_factor`: (1 + rho) / (1 - rho), rho within [0, ``MAX_CORRELATION``], 1 until
   ``CORRELATION_SETTLE`` s of pairs were seen or with ``ekf.noise_correlation`` off;
 * :func:`learn_noise`: after an accepted epoch, both measures of R (with adaptation.learn_noise_scales);
@@ -51,11 +55,11 @@ CORRELATION_SETTLE = 10.0
 
 @inline_kernel
 def correlation_of(memo, channel):
-    """Rho of one measurement (0: vy, 1: the second) as measured so far, within [0, MAX_CORRELATION]."""
+    """Rho of one measurement (0: vy, 1: the second) as measured so far: E[w_k w_k-1] / max(E[w^2], 1), in [0, MAX]."""
     power = memo[M_CORRELATION_POWER + channel]
     if not power > 0.0:
         return 0.0
-    return min(max(memo[M_CORRELATION_LAG + channel] / power, 0.0), MAX_CORRELATION)
+    return min(max(memo[M_CORRELATION_LAG + channel] / max(power, 1.0), 0.0), MAX_CORRELATION)
 
 
 @inline_kernel
@@ -92,7 +96,8 @@ def effective_noise(memo, settings, r_vy, r_second):
 def learn_noise_correlation(memo, settings, t, dt, e0, e1, s00, s11):
     """One accepted epoch: pair its normalised innovations with the last ones if those were the previous epoch's.
 
-    e0, e1: the innovations; s00, s11: their variances in S. A gated or skipped epoch breaks the pairs.
+    e0, e1: the innovations; s00, s11: their variances in S with R unwidened. A gated or skipped epoch breaks
+    the pairs.
     """
     if settings[S_NOISE_CORRELATION] < 0.5 or not (s00 > 0.0 and s11 > 0.0):
         return
@@ -110,18 +115,16 @@ def learn_noise_correlation(memo, settings, t, dt, e0, e1, s00, s11):
 
 
 @inline_kernel
-def learn_noise(memo, settings, heading, t, dt, speed, e0, e1, hph00, hph01, hph11, s00, s11, configured0,
-                configured1):
+def learn_noise(memo, settings, heading, t, dt, speed, e0, e1, hph00, hph01, hph11, configured0, configured1):
     """After an accepted epoch: R's variance as the innovations show it (adaptation.learn_noise_scales) and rho.
 
     R's variance is matched against S with R unwidened: H P^- H^T (hph*) plus the configured (or reported)
     R (configured0, configured1) times the learned variance factors. With the widened R the heading's share
     of the velocity's S (vx^2 R_psi) would be overstated and the velocity's measured R would fall (GNSS 3x
-    noisier than R: R_v x1.9 where it is x9, and false change alarms). rho normalises by the step's S
-    (s00, s11, as published): a slowly varying scale, which the ratio does not see.
+    noisier than R: R_v x1.9 where it is x9, and false change alarms). rho normalises by that S too.
     """
     r0 = configured0 * noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY)
     r1 = configured1 * noise_scale(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND)
     white00, _, white11 = innovation_covariance(heading, hph00, hph01, hph11, r0, r1, speed)
     learn_noise_scales(memo, settings, dt, e0, e1, white00 - r0, white11 - r1, r0, r1, configured0, configured1)
-    learn_noise_correlation(memo, settings, t, dt, e0, e1, s00, s11)
+    learn_noise_correlation(memo, settings, t, dt, e0, e1, white00, white11)
