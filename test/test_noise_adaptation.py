@@ -17,6 +17,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from drives import median_and_worst, pooled_coverage, run_drive, sine_drive
+from test_noise_correlation import unwidened_s
 from test_validity import epochs_of
 
 from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, ValiditySettings
@@ -24,10 +25,9 @@ from transplanter_ident.ekf.layout import (
     O_DT,
     O_E0,
     O_E1,
+    O_NOISE_CORRELATION_SECOND,
     O_NOISE_SCALE_SECOND,
     O_NOISE_SCALE_VY,
-    O_S00,
-    O_S11,
     O_STATUS,
     StepStatus,
 )
@@ -86,27 +86,30 @@ def test_the_learned_factor_is_the_variance_ratio() -> None:
         assert np.all(run.outputs[:, O_NOISE_SCALE_SECOND] >= 1.0)
 
 
-def test_the_kernel_learns_as_a_plain_loop_over_its_outputs() -> None:
+@pytest.mark.parametrize("widened", [False, True])
+def test_the_kernel_learns_as_a_plain_loop_over_its_outputs(widened: bool) -> None:
     """The compiled covariance matching equals a plain Python loop over the published innovations and S.
 
     Per epoch the filter passed (UPDATED or NONLINEAR): prior = S_ii - R_i f_i (f: the factor in use, the
     previous epoch's), sample (e_i^2 - prior) / R_i of weight (R_i f_i / S_ii)^2 dt, a weighted mean over the
     first ekf.noise_memory s, then exponential; the factor is that mean clipped to [1, max_noise_scale].
-    One pass (``ekf.relinearization_window: 0``): a re-linearised pass goes on from what it learned over
-    epochs whose outputs were published by the pass before it.
+    ``widened`` (ekf.noise_correlation): S is the one with R unwidened, rebuilt from the published S
+    (test_noise_correlation.unwidened_s). One pass (``ekf.relinearization_window: 0``): a re-linearised
+    pass goes on from what it learned over epochs whose outputs were published by the pass before it.
     """
     config = EstimatorConfig(options=replace(EstimatorConfig().options, relinearization_window=0.0,
-                                             noise_correlation=False))  # R widened by rho: test_noise_correlation.py
+                                             noise_correlation=widened))
     options, r = config.options, np.array(config.noise.measurement_noise)
-    run = run_drive(sine_drive(3, noise=noisier(2.0, 1.5)), config)
-    out = run.outputs
+    result = simulate(sine_drive(3, noise=noisier(2.0, 1.5)))
+    speed = np.asarray(epochs_of(result).speed)
+    out = run_drive(result, config).outputs
     mean, span = np.zeros(2), np.zeros(2)
     factors = np.ones(2)
     checked = 0
     for k in range(1, len(out)):
         if int(out[k, O_STATUS]) in (StepStatus.UPDATED, StepStatus.NONLINEAR):
             noise = r * factors
-            s = out[k, [O_S00, O_S11]]
+            s = unwidened_s(config, speed[k], out[k - 1], out[k])
             e = out[k, [O_E0, O_E1]]
             prior = s - noise
             weight = (noise / s) ** 2 * out[k, O_DT]
@@ -117,6 +120,7 @@ def test_the_kernel_learns_as_a_plain_loop_over_its_outputs() -> None:
         np.testing.assert_allclose(out[k, [O_NOISE_SCALE_VY, O_NOISE_SCALE_SECOND]], expected, rtol=1e-9)
         factors = expected
     assert checked > 500 and factors[0] > 2.0  # the loop saw the adaptation at work
+    assert not widened or np.max(out[:, O_NOISE_CORRELATION_SECOND]) > 0.05  # and R widened (measured 0.087: +19 %)
 
 
 def test_noisier_gnss_is_not_valid_and_says_why() -> None:

@@ -76,29 +76,32 @@ def missed_share(tau: float, widened: bool) -> float:
     return float(np.mean(np.concatenate(missed)))
 
 
+def unwidened_s(config: EstimatorConfig, speed: float, before: np.ndarray, row: np.ndarray) -> np.ndarray:
+    """(S_00, S_11) of one step with R unwidened, rebuilt from its published S (``row``) and the row ``before`` it.
+
+    The step widened the configured R times its learned factor (the previous row's O_NOISE_SCALE_*) by
+    the previous row's rho, and the heading's R enters the velocity's S times vx^2 (heading mode).
+    """
+    rho = before[[O_NOISE_CORRELATION_VY, O_NOISE_CORRELATION_SECOND]]
+    excess = (1.0 + rho) / (1.0 - rho) - 1.0
+    r0, r1 = np.array(config.noise.measurement_noise) * before[[O_NOISE_SCALE_VY, O_NOISE_SCALE_SECOND]]
+    return np.array([row[O_S00] - excess[0] * r0 - speed ** 2 * excess[1] * r1, row[O_S11] - excess[1] * r1])
+
+
 def slow_correlations(config: EstimatorConfig, epochs: EpochArrays, outputs: np.ndarray) -> np.ndarray:
     """The rho of (vy, second) after each epoch, as noise_correlation.py defines it, by a plain loop.
 
-    Each innovation is normalised by S with R unwidened, rebuilt from the published S: the step widened
-    the configured R times its learned factor (the previous row's O_NOISE_SCALE_*) by the previous
-    row's rho, and the heading's R enters the velocity's S times vx^2 (heading mode).
+    Each innovation is normalised by S with R unwidened (:func:`unwidened_s`).
     """
     t, speed = np.asarray(epochs.t), np.asarray(epochs.speed)
-    r_vy, r_psi = config.noise.measurement_noise
     memory = config.options.noise_memory
     lag, power, span, last, last_t = np.zeros(2), np.zeros(2), 0.0, np.zeros(2), -math.inf
     rho = np.zeros((len(t), 2))
     for k in range(1, len(t)):
         status = StepStatus(int(outputs[k, O_STATUS]))
         if status in (StepStatus.UPDATED, StepStatus.NONLINEAR):
-            before = outputs[k - 1]
-            widen = (1.0 + before[[O_NOISE_CORRELATION_VY, O_NOISE_CORRELATION_SECOND]]) / (
-                1.0 - before[[O_NOISE_CORRELATION_VY, O_NOISE_CORRELATION_SECOND]])
-            r0, r1 = r_vy * before[O_NOISE_SCALE_VY], r_psi * before[O_NOISE_SCALE_SECOND]
-            white = np.array([outputs[k, O_S00] - (widen[0] - 1.0) * r0 - speed[k] ** 2 * (widen[1] - 1.0) * r1,
-                              outputs[k, O_S11] - (widen[1] - 1.0) * r1])
             dt = outputs[k, O_DT]
-            w = outputs[k, [O_E0, O_E1]] / np.sqrt(white)
+            w = outputs[k, [O_E0, O_E1]] / np.sqrt(unwidened_s(config, speed[k], outputs[k - 1], outputs[k]))
             if t[k] - dt - 1.0e-6 <= last_t < t[k]:
                 span = min(span + dt, memory)
                 lag += dt / span * (w * last - lag)
