@@ -351,6 +351,11 @@ def signature_estimate(memo, score_slot, information_slot):
 FIRST_ORDER_ERROR = 0.5
 
 
+#: the saturation a band holds reaches the measure's upper bound at this many std, if below 1 (a tire at
+#: ``min_friction``): large slips that stay linear show a tire far grippier than that
+SATURATION_REACH_SIGMAS = 2.0
+
+
 @inline_kernel
 def saturation_share(memo, settings):
     """(share, unpinned): Cf, Cr take share x their bias at ``min_friction``; the std holds unpinned x it^2.
@@ -358,9 +363,11 @@ def saturation_share(memo, settings):
     share = the posterior's mode of the saturation a (1: a tire at ``min_friction``, 0: a linear tire),
     with the prior N(0, ``saturation_prior``^2) bounded to a >= 0 (a tire never gives more than C alpha),
     from :func:`score_signature` on the signature of :func:`propagate_tire_bias`. unpinned = what is left
-    to a tire at ``min_friction`` (1 - share)^2, if positive, + the posterior variance + (FIRST_ORDER_ERROR
-    x share)^2: the band never leaves out the bias of the most slippery surface expected, as with the
-    measure off (0, 1). With ``saturation_correction`` (the field's friction known): (1, 1).
+    to the reach (reach - share)^2, if positive, + the posterior variance + (FIRST_ORDER_ERROR x share)^2.
+    The reach is a tire at ``min_friction`` (1), or the measure's upper bound (estimate +
+    SATURATION_REACH_SIGMAS std) where the data exclude that tire: the band never leaves out the bias of
+    the most slippery surface the data allow, as with the measure off (0, 1). With
+    ``saturation_correction`` (the field's friction known): (1, 1).
     """
     if settings[S_SATURATION_CORRECTION] > 0.5:
         return 1.0, 1.0
@@ -369,6 +376,8 @@ def saturation_share(memo, settings):
     if not (prior > 0.0 and information > 0.0):
         return 0.0, 1.0
     variance = 1.0 / (information + 1.0 / (prior * prior))
-    share = max(memo[M_SATURATION_SCORE] * variance, 0.0)  # the mode under a >= 0: never more force than C alpha
-    left = max(1.0 - share, 0.0)
+    score = memo[M_SATURATION_SCORE]
+    share = max(score * variance, 0.0)  # the mode under a >= 0: never more force than C alpha
+    reach = min(1.0, (max(score, 0.0) + SATURATION_REACH_SIGMAS * math.sqrt(information)) / information)
+    left = max(reach - share, 0.0)
     return share, left * left + variance + (FIRST_ORDER_ERROR * share) ** 2
