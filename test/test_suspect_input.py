@@ -40,7 +40,8 @@ BAD_FROM, BAD_TO = 30.0, 42.0
 def _sample(t: float, rejected: int = 0, status: StepStatus = StepStatus.UPDATED) -> Sample:
     return Sample(t=t, status=status, cf=8000.0, cr=10000.0, cf_std=80.0, cr_std=100.0,
                   steering=0.2 * math.sin(t), yaw_rate=0.4 * math.sin(t), speed=2.0,
-                  antenna_lateral_velocity=0.15 * math.sin(t), nis=2.0, whitened_vy=(-1.0) ** round(10 * t),
+                  antenna_lateral_velocity=0.15 * math.sin(t), nis=2.0, nis_measured=2.0, noise_factors=(1.0, 1.0),
+                  whitened_vy=(-1.0) ** round(10 * t),
                   rejected=rejected)
 
 

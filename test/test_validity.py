@@ -242,9 +242,11 @@ def test_hysteresis_needs_hold_on_to_become_valid_and_hold_off_to_drop() -> None
     for k in range(150):
         t = 0.1 * k
         bad = k == 100
+        nis = float(rng.chisquare(2))
         sample = Sample(t=t, status=StepStatus.UPDATED, cf=8000.0, cr=10000.0, cf_std=80.0,
                         cr_std=900.0 if bad else 100.0, steering=0.2 * math.sin(t), yaw_rate=0.4 * math.sin(t),
-                        speed=2.0, antenna_lateral_velocity=0.15 * math.sin(t), nis=float(rng.chisquare(2)),
+                        speed=2.0, antenna_lateral_velocity=0.15 * math.sin(t), nis=nis, nis_measured=nis,
+                        noise_factors=(1.0, 1.0),
                         whitened_vy=float(rng.standard_normal()))
         flags.append(monitor.step(sample).valid)
     first = flags.index(True)

@@ -22,7 +22,10 @@ from transplanter_ident.ekf.layout import (
     O_CF_STD,
     O_CHANGE,
     O_CR_STD,
+    O_NIS,
     O_NIS_CONFIGURED,
+    O_NOISE_SCALE_SECOND,
+    O_NOISE_SCALE_VY,
     O_STATUS,
     O_UPDATE_F,
     O_UPDATE_R,
@@ -108,14 +111,14 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
     rng = np.random.default_rng(11)
     epochs, clean = _drive("clean", 2)
     statuses = np.array([int(s) for s in StepStatus])
-    flips = drifts = measured = 0
+    flips = drifts = measured = noisier = 0
     for case in range(100):
         outputs = clean.copy()
         n = len(outputs)
         for _ in range(int(rng.integers(0, 6))):
             start = int(rng.integers(0, n))
             stop = min(n, start + int(rng.integers(1, 300)))
-            what = int(rng.integers(0, 6))
+            what = int(rng.integers(0, 7))
             if what == 0:
                 outputs[start:stop, O_STATUS] = rng.choice(statuses, stop - start)
             elif what == 1:
@@ -134,6 +137,10 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
                 outputs[start:stop, value] = rng.normal(rng.choice((-0.2, 0.2)), 0.1, stop - start)
                 outputs[start:stop, std] = rng.uniform(0.03, 0.15, stop - start) * (rng.random(stop - start) < 0.9)
                 outputs[start:stop, [sens_f, sens_r]] = rng.normal(0.0, 0.5, (stop - start, 2))
+            elif what == 6:  # sensors noisier than R: the factors the innovations show, and the NIS against them
+                outputs[start:stop, [O_NOISE_SCALE_VY, O_NOISE_SCALE_SECOND]] = rng.uniform(1.0, 4.0, (stop - start, 2))
+                outputs[start:stop, O_NIS_CONFIGURED] *= 3.0
+                outputs[start:stop, O_NIS] = np.where(rng.random(stop - start) < 0.1, math.nan, 2.0)
         settings = dataclasses.replace(
             SETTINGS, window=float(rng.choice((2.0, 5.0, 10.0))), hold_on=float(rng.choice((0.2, 1.0, 3.0))),
             hold_off=float(rng.choice((0.1, 0.5, 1.0))), max_autocorrelation=float(rng.choice((0.05, 0.3))),
@@ -144,7 +151,8 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
             max_drift_sigmas=float(rng.choice((1.0, 2.5))), max_relaxation_sigmas=float(rng.choice((1.0, 3.0))),
             max_relaxation_shift=float(rng.choice((0.3, 1.0, 100.0))),
             max_steering_gain_sigmas=float(rng.choice((1.0, 3.0))),
-            max_steering_gain_shift=float(rng.choice((0.3, 1.0, 100.0))))
+            max_steering_gain_shift=float(rng.choice((0.3, 1.0, 100.0))),
+            max_noise_factor=float(rng.choice((1.0, 2.25, 100.0))))
         rejected = [0] * n
         for _ in range(int(rng.integers(0, 4))):
             start = int(rng.integers(0, n))
@@ -161,8 +169,10 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
         unmeasured = dataclasses.replace(settings, **{f"max_{e.name}_{test}": 100.0 for e in MODEL_ERRORS
                                                       for test in ("sigmas", "shift")})
         measured += not np.array_equal(expected, monitor_decisions(unmeasured, epochs, outputs, rejected))
+        noisier += not np.array_equal(expected, monitor_decisions(dataclasses.replace(settings, max_noise_factor=1.0e4),
+                                                                  epochs, outputs, rejected))
     assert flips > 50  # the cases switch valid on and off, not one constant answer
-    assert drifts >= 3 and measured >= 3  # and the drift test and the model errors' tests decided some of them
+    assert drifts >= 3 and measured >= 3 and noisier >= 3  # the drift, model error and noise tests decided some
 
 
 def test_times_that_go_back_use_the_monitor() -> None:

@@ -192,6 +192,7 @@ class ValiditySettings:
     min_steering_std: float = 0.02  # rad: steering standard deviation over the window
     min_yaw_rate_std: float = 0.02  # rad/s
     nis_quantile_sigmas: float = 3.0  # the windowed NIS sum may exceed its mean by this many sigmas
+    max_noise_factor: float = 2.25  # the NIS test takes R x the factor the innovations show up to this; beyond: invalid
     max_autocorrelation: float = 0.6  # lag-1 autocorrelation of the whitened vy innovation
     max_sideslip: float = 0.35  # rad: |vy / vx| beyond it the velocity and heading disagree
     course_ratio: float = 0.2  # RMS vy at the antenna below this fraction of (lr + ax) RMS r: course over ground
@@ -216,6 +217,9 @@ class ValiditySettings:
                                                  "max_relaxation_shift", "max_steering_gain_sigmas",
                                                  "max_steering_gain_shift", "max_drift_sigmas"),
                      non_negative=("min_steering_std", "min_yaw_rate_std", "hold_on", "hold_off", "drift_window"))
+        if isinstance(self.max_noise_factor, bool) or not (math.isfinite(self.max_noise_factor)
+                                                           and self.max_noise_factor >= 1.0):
+            raise ValueError(f"validity.max_noise_factor must be a finite number >= 1, got {self.max_noise_factor!r}")
 
 
 

@@ -280,6 +280,10 @@ SCHEMA: tuple[Param, ...] = (
            "for excitation (or the steering one)", 0.0, 10.0, read_only=False),
     _float("validity.nis_quantile_sigmas", 3.0, "", "the window's NIS sum may exceed its chi^2 mean by this "
            "many of its sigmas", 0.1, 100.0, read_only=False),
+    _float("validity.max_noise_factor", 2.25, "", "the NIS test takes R times the factor (variance) the "
+           "innovations show (ekf.noise_adaptation; /diagnostics noise_factors) up to this: GNSS noise 1.5x the "
+           "configured one (1-sigma) is measured, not a fault; beyond it the estimate is not valid until "
+           "ekf.measurement_noise is set (or tuned)", 1.0, 1.0e4, read_only=False),
     *_measured_error("delay", "the GNSS delay left out of gnss.delay", "GNSS delay", "delay_estimate_ms",
                      "per second of delay", 3.0, 1.5, ": a delay the data show but cannot yet pin moves the stiffness "
                      "beyond its band"),

@@ -47,7 +47,10 @@ from transplanter_ident.ekf.layout import (
     O_CR,
     O_CR_STD,
     O_E0,
+    O_NIS,
     O_NIS_CONFIGURED,
+    O_NOISE_SCALE_SECOND,
+    O_NOISE_SCALE_VY,
     O_S00,
     O_STATUS,
     O_UPDATE_F,
@@ -58,6 +61,7 @@ from transplanter_ident.epochs.epoch import Epoch, EpochArrays
 from transplanter_ident.evaluation.model_errors import MODEL_ERRORS, Measure, measures_of
 from transplanter_ident.evaluation.validity_batch import (
     MIN_DRIFT_UPDATES,
+    consistency_nis,
     decide_batch,
     steady_antenna_vy,
 )
@@ -86,6 +90,8 @@ class Sample:
     speed: float
     antenna_lateral_velocity: float
     nis: float  # against the configured R (layout.O_NIS_CONFIGURED)
+    nis_measured: float  # against R as the innovations show it (O_NIS; validity_batch.consistency_nis)
+    noise_factors: tuple[float, float]  # on R (variance) as the innovations show it: velocity, heading (or r)
     whitened_vy: float  # e0 / sqrt(S00)
     rejected: int = 0  # input samples (and epochs) rejected since the previous epoch
     measures: tuple[Measure, ...] = ()  # the filter's measures of model errors left out (model_errors.MODEL_ERRORS)
@@ -179,6 +185,11 @@ class ValidityMonitor:
             reason = error.reason(measure, relative, self.settings)
             if reason is not None:
                 reasons.append(reason)
+        if max(sample.noise_factors) > self.settings.max_noise_factor:
+            reasons.append("GNSS noisier than ekf.measurement_noise: the innovations show {:.2f} x its variance "
+                           "(velocity), {:.2f} x (heading), beyond validity.max_noise_factor {:g}; set "
+                           "ekf.measurement_noise, or tune it".format(*sample.noise_factors,
+                                                                      self.settings.max_noise_factor))
         return reasons
 
     def _plausibility(self, window: list[Sample]) -> list[str]:
@@ -247,13 +258,14 @@ class ValidityMonitor:
         if _std([w.steering for w in window]) < s.min_steering_std and \
                 _std([w.yaw_rate for w in window]) < s.min_yaw_rate_std:
             reasons.append("too little excitation (steering and yaw rate nearly constant)")
-        predicted = [w for w in window if w.status in PREDICTED and math.isfinite(w.nis)]
+        nis = [float(consistency_nis(max(w.noise_factors), w.nis_measured, w.nis, s.max_noise_factor)) for w in window]
+        predicted = [(w, x) for w, x in zip(window, nis, strict=True) if w.status in PREDICTED and math.isfinite(x)]
         if len(predicted) >= 5:
-            total, dof = sum(w.nis for w in predicted), 2 * len(predicted)
+            total, dof = sum(x for _, x in predicted), 2 * len(predicted)
             if total > dof + s.nis_quantile_sigmas * math.sqrt(2.0 * dof):
                 reasons.append(f"innovations inconsistent with R and Q (mean NIS {total / len(predicted):.1f}, "
                                "expected 2)")
-            rho = _lag1_autocorrelation([w.whitened_vy for w in predicted])
+            rho = _lag1_autocorrelation([w.whitened_vy for w, _ in predicted])
             if rho > s.max_autocorrelation:
                 reasons.append(f"innovations correlated in time (lag-1 {rho:.2f}): an unconfigured GNSS delay "
                                "(gnss.delay) or lever arm, or GNSS errors correlated in time (a receiver smoothing "
@@ -301,6 +313,8 @@ def sample_of(epoch: Epoch, row: np.ndarray, rejected: int = 0) -> Sample:
                   cf_std=float(row[O_CF_STD]), cr_std=float(row[O_CR_STD]), steering=epoch.steering,
                   yaw_rate=epoch.yaw_rate, speed=epoch.speed,
                   antenna_lateral_velocity=float(epoch.antenna_lateral_velocity), nis=float(row[O_NIS_CONFIGURED]),
+                  nis_measured=float(row[O_NIS]),
+                  noise_factors=(float(row[O_NOISE_SCALE_VY]), float(row[O_NOISE_SCALE_SECOND])),
                   whitened_vy=float(row[O_E0]) / math.sqrt(s00) if s00 > 0.0 else 0.0, rejected=int(rejected),
                   measures=measures_of(row), updates=(float(row[O_UPDATE_F]), float(row[O_UPDATE_R])),
                   change=bool(row[O_CHANGE] > 0.0))

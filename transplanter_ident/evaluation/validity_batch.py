@@ -24,7 +24,10 @@ from transplanter_ident.ekf.layout import (
     O_CR,
     O_CR_STD,
     O_E0,
+    O_NIS,
     O_NIS_CONFIGURED,
+    O_NOISE_SCALE_SECOND,
+    O_NOISE_SCALE_VY,
     O_S00,
     O_STATUS,
     O_UPDATE_F,
@@ -48,6 +51,21 @@ def steady_antenna_vy(lever: float, rear_slip_gain: float, speed: float, cr: flo
     CG, where that slip cancels the kinematic (lr + antenna_x) r, sees a vy near zero with a true heading.
     """
     return (lever - rear_slip_gain * speed * speed / cr) * yaw_rate
+
+
+def noise_factor(outputs: np.ndarray) -> np.ndarray:
+    """The larger factor on R (variance) the innovations show, velocity's or heading's (ekf.noise_adaptation), per row."""
+    return np.maximum(outputs[..., O_NOISE_SCALE_VY], outputs[..., O_NOISE_SCALE_SECOND])
+
+
+def consistency_nis(factor: np.ndarray | float, measured: np.ndarray | float, configured: np.ndarray | float,
+                    max_noise_factor: float) -> np.ndarray:
+    """The NIS the consistency test takes (the monitor's per sample, the batch's per row).
+
+    Against R as the innovations show it (layout.O_NIS, ``measured``) where the noise ``factor`` is within
+    ``max_noise_factor``, else against the configured R (O_NIS_CONFIGURED, ``configured``).
+    """
+    return np.where(np.asarray(factor) <= max_noise_factor, measured, configured)
 
 
 def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever: float, recheck: float,
@@ -86,11 +104,13 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
         soft = ~predicted | ~(worst <= settings.max_rel_std)
         for error in MODEL_ERRORS:  # a GNSS delay, a relaxation length, a steering gain left out (model_errors.py)
             soft |= error.fails(outputs, front, rear, settings)
+        soft |= noise_factor(outputs) > settings.max_noise_factor
         s00 = outputs[:, O_S00]
         whitened = np.divide(outputs[:, O_E0], np.sqrt(np.where(s00 > 0.0, s00, 1.0)), where=s00 > 0.0,
                              out=np.zeros(n))
         sideslip = np.abs(vy - antenna_x * r) / speed  # at the CG
-    nis = np.ascontiguousarray(outputs[:, O_NIS_CONFIGURED], dtype=np.float64)
+    nis = np.ascontiguousarray(consistency_nis(noise_factor(outputs), outputs[:, O_NIS], outputs[:, O_NIS_CONFIGURED],
+                                               settings.max_noise_factor), dtype=np.float64)
     plaus = np.flatnonzero(predicted & (speed > 0.0))  # the plausibility checks' epochs
     consist = np.flatnonzero(predicted & np.isfinite(nis))  # the NIS and autocorrelation checks' epochs
     beta = list(map(math.atan2, vy[plaus].tolist(), speed[plaus].tolist()))
