@@ -18,14 +18,18 @@ from helpers import sim_samples
 
 from transplanter_ident.bags import read_bag
 from transplanter_ident.cli import simulate as simulate_cli
+from transplanter_ident.config.parameters import EstimatorConfig, ValiditySettings
 from transplanter_ident.config.params_file import EstimatorParams, ParamsError, load_params
 from transplanter_ident.ekf.joint_ekf import run_sequence
-from transplanter_ident.ekf.layout import O_CF, O_CR, O_STATUS, StepStatus
+from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD, O_STATUS, StepStatus
 from transplanter_ident.epochs import checks
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
+from transplanter_ident.epochs.counted import assemble_counting
+from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.epochs.frames import body_velocity
 from transplanter_ident.evaluation.health import ERROR, OK, WARN, should_publish
 from transplanter_ident.evaluation.input_health import PairingMonitor
+from transplanter_ident.evaluation.validity import decide_sequence
 from transplanter_ident.sim.drivers import DRIVERS
 from transplanter_ident.sim.scenarios import build_config
 from transplanter_ident.sim.simulator import simulate
@@ -217,6 +221,63 @@ def test_pairing_monitor_levels() -> None:
     monitor.update(assembler.pairing, 0.6)
     assert monitor.report(0.6)[0] == WARN
     assert monitor.report(2.0)[0] == OK  # out of the window
+
+
+def _every_other(samples: list, stream: str) -> list:
+    """``samples`` with every other sample of ``stream`` left out (that stream at half the rate)."""
+    kept, seen = [], 0
+    for sample in samples:
+        if sample[0] == stream:
+            seen += 1
+            if seen % 2 == 0:
+                continue
+        kept.append(sample)
+    return kept
+
+
+@pytest.mark.parametrize("slower", ["heading", "velocity"])
+def test_a_gnss_stream_faster_than_its_partner_is_a_set_up_not_suspect_input(slower: str) -> None:
+    """Velocity at 10 Hz with a 5 Hz dual-antenna heading (or the other way round), seeds 1-4, 120 s.
+
+    The faster stream's samples without a partner are counted as surplus, not as unpaired (the first one
+    given up, before either stream's rate is known, excepted), and they do not make the input suspect
+    (validity.max_suspect_fraction). Valid from 30 s on in >= 80 % of the epochs (measured 88 %, as with
+    the extra samples left out), <= 5 % of them outside +-2 sigma (0); counted as rejected input, as
+    before, never valid.
+    """
+    kept = missed = epochs = 0
+    config = EstimatorConfig()
+    for seed in range(1, 5):
+        result = simulate(build_config("sine", duration=120.0, gnss_rate=10.0, seed=seed))
+        assembler = EpochAssembler(AssemblerSettings())
+        found, counts, rejections = assemble_counting(assembler, _every_other(sim_samples(result), slower), [])
+        arrays = EpochArrays(found)
+        kinds = [r.kind for r in rejections]
+        assert kinds.count(checks.SURPLUS) >= len(result.gnss_time) // 2 - 3 and kinds.count(checks.UNPAIRED) <= 1
+        assert assembler.pairing.surplus == kinds.count(checks.SURPLUS) and assembler.pairing.misses <= 1
+        outputs = run_sequence(config, arrays)
+        after = arrays.t >= 30.0
+        valid = decide_sequence(config, ValiditySettings(), arrays, outputs, counts) & after
+        true_cf, true_cr = (np.interp(arrays.t, result.gnss_time, truth) for truth in (result.truth_cf, result.truth_cr))
+        covered = (np.abs(outputs[:, O_CF] - true_cf) <= 2.0 * outputs[:, O_CF_STD]) & (
+            np.abs(outputs[:, O_CR] - true_cr) <= 2.0 * outputs[:, O_CR_STD])
+        kept, missed, epochs = kept + int(valid.sum()), missed + int((valid & ~covered).sum()), epochs + int(after.sum())
+        each_after_a_rejection = [c + 1 for c in counts]  # surplus counted as suspect: one before every epoch
+        assert not np.any(decide_sequence(config, ValiditySettings(), arrays, outputs, each_after_a_rejection) & after)
+    assert kept >= 0.8 * epochs and missed <= 0.05 * kept, (kept, missed, epochs)
+
+
+def test_a_lost_heading_at_equal_rates_is_still_unpaired() -> None:
+    """At 5 Hz both, a heading lost leaves its velocity unpaired (counted as rejected input), not surplus."""
+    assembler = EpochAssembler(AssemblerSettings(match_tolerance=0.05))
+    for k in range(10):
+        t = 0.2 * k
+        assembler.add_velocity(t, 1.0, 0.0)
+        if k != 6:
+            assembler.add_heading(t, 0.0)
+    unpaired = [(r.kind, r.stamp) for r in assembler.drain_rejections() if r.kind != checks.NO_STEERING]
+    assert unpaired == [(checks.UNPAIRED, pytest.approx(1.2))]
+    assert assembler.pairing.surplus == 0 and assembler.pairing.misses == 1
 
 
 def test_the_node_refuses_one_topic_for_two_types() -> None:

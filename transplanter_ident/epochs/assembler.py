@@ -253,6 +253,10 @@ class EpochAssembler:
 
     def _reject_unpaired(self, sample: Unpaired) -> None:
         other = "heading" if sample.role == "velocity" else "velocity"
+        if sample.surplus:
+            self._reject(sample.role, sample.stamp, f"the {sample.role} arrives faster than the {other}: only the "
+                         f"samples with a {other} within gnss.pairing_tolerance are used", checks.SURPLUS)
+            return
         tolerance = self.settings.match_tolerance
         if sample.offset is None:
             nearest = f"no {other} sample yet"

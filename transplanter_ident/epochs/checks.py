@@ -35,6 +35,7 @@ QUATERNION_NORM = "quaternion_norm"
 MISSING_JOINT = "missing_joint"
 DUPLICATE_JOINT = "duplicate_joint"
 UNPAIRED = "unpaired"
+SURPLUS = "gnss_surplus"
 NO_STEERING = "no_steering"
 UNDECODABLE = "undecodable"
 WRONG_TYPE = "wrong_type"
@@ -53,7 +54,12 @@ SUMMARY_LABELS = {
     QUATERNION_NORM: "orientation quaternion not of norm 1",
     DUPLICATE_JOINT: "joint names listed twice in the JointState",
     UNPAIRED: "no partner within gnss.pairing_tolerance",
+    SURPLUS: "a GNSS stream faster than its partner: samples without one are not used",
 }
+
+#: kinds that do not make the input suspect (validity.max_suspect_fraction): a faster GNSS stream's surplus
+#: (a set-up), and the node's check of a publisher's type (offline has none)
+NOT_SUSPECT = frozenset({SURPLUS, WRONG_TYPE})
 
 #: rad: a steering change within max_steering_rate dt plus this is no spike (sensor noise at a high rate)
 STEERING_NOISE = 0.01

@@ -1,7 +1,8 @@
 """Epochs with the input samples rejected before each (issue #14: the estimate is invalid while the input is suspect).
 
 The node counts, for every epoch, the samples that were rejected since the previous epoch (by its
-own message conversion and by the assembler, drained after every message), and hands the count to
+own message conversion and by the assembler, drained after every message; not the kinds in
+:data:`.checks.NOT_SUSPECT`, such as a faster GNSS stream's surplus), and hands the count to
 the validity decision (:attr:`transplanter_ident.evaluation.validity.Sample.rejected`).
 :func:`assemble_counting` counts the same way offline, in the order the samples are processed, so
 that the decision agrees online and offline.
@@ -12,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 
 from transplanter_ident.epochs.assembler import INPUTS, EpochAssembler
+from transplanter_ident.epochs.checks import NOT_SUSPECT
 from transplanter_ident.epochs.epoch import Epoch, Rejection
 
 
@@ -34,7 +36,7 @@ def assemble_counting(assembler: EpochAssembler, samples: Iterable[tuple[str, fl
         new = adders[name](stamp, *values)
         now = assembler.drain_rejections()
         drained.extend(now)
-        pending += len(now) + len(source_rejections) - seen
+        pending += sum(r.kind not in NOT_SUSPECT for r in now) + len(source_rejections) - seen
         seen = len(source_rejections)
         for epoch in new:
             epochs.append(epoch)

@@ -9,6 +9,10 @@ increase (the assembler rejects the others), so a velocity older than the newest
 tolerance can never pair any more: it is given up at once, with the offset to the nearest heading,
 so the diagnostics can say within one GNSS period by how much the two miss. Nothing is dropped
 silently; the queues are bounded.
+
+A stream that runs faster than its partner (velocity at 10 Hz, a dual-antenna heading at 5 Hz)
+leaves samples that no partner exists for: those are *surplus* (:attr:`Unpaired.surplus`, its recent
+rate at least :data:`SURPLUS_RATE_RATIO` x the other's), a set-up, not a fault, and counted apart.
 """
 
 from __future__ import annotations
@@ -20,8 +24,10 @@ from typing import Any
 ROLES = ("velocity", "heading")
 #: samples of one stream waiting for a partner (a silent partner topic cannot grow memory)
 CAPACITY = 32
-#: recent stamps per stream, to find the nearest partner of a sample given up
+#: recent stamps per stream, to find the nearest partner of a sample given up and the streams' rates
 RECENT = 8
+#: a sample given up is surplus when its stream's recent rate is at least this times its partner's
+SURPLUS_RATE_RATIO = 1.5
 
 
 @dataclass(frozen=True)
@@ -31,6 +37,7 @@ class Unpaired:
     role: str
     stamp: float
     offset: float | None
+    surplus: bool = False  # its stream runs faster than the partner's: no partner exists for it
 
 
 @dataclass
@@ -38,7 +45,8 @@ class PairingStats:
     """Counts since the start: epochs paired, samples given up, and the offset of the latest miss."""
 
     pairs: int = 0
-    misses: int = 0
+    misses: int = 0  # not counting the surplus
+    surplus: int = 0  # samples of the faster stream given up (Unpaired.surplus)
     last_offset: float | None = None  # s, heading stamp - velocity stamp of the nearest partner
     largest_miss: float = 0.0  # s, the largest |offset| of a miss with a partner in sight
     tolerance: float = 0.0
@@ -110,8 +118,19 @@ class GnssPairer:
         offset = min((p - stamp for p in partners), key=abs) if partners else None
         if offset is not None and role == "heading":
             offset = -offset  # always heading - velocity
+        own_rate, other_rate = _rate(self._recent[role]), _rate(partners)
+        if own_rate > 0.0 and other_rate > 0.0 and own_rate >= SURPLUS_RATE_RATIO * other_rate:
+            self.stats.surplus += 1
+            return Unpaired(role, stamp, offset, surplus=True)
         self.stats.misses += 1
         if offset is not None:
             self.stats.last_offset = offset
             self.stats.largest_miss = max(self.stats.largest_miss, abs(offset))
         return Unpaired(role, stamp, offset)
+
+
+def _rate(stamps: deque[float]) -> float:
+    """Samples per second over the recent stamps of a stream (0 with fewer than three, or no span)."""
+    if len(stamps) < 3 or not stamps[-1] > stamps[0]:
+        return 0.0
+    return (len(stamps) - 1) / (stamps[-1] - stamps[0])

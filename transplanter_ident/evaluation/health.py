@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from transplanter_ident.config.parameters import check_fields
 from transplanter_ident.ekf.joint_ekf import Estimate
 from transplanter_ident.ekf.layout import StepStatus
+from transplanter_ident.epochs import checks
 from transplanter_ident.epochs.epoch import Epoch, Rejection
 from transplanter_ident.epochs.pairing import PairingStats
 from transplanter_ident.evaluation.convergence_report import convergence_report
@@ -85,9 +86,11 @@ class InputMonitor:
         self._arrivals.add(now)
 
     def reject(self, now: float, reason: str, kind: str = "other") -> None:
+        self.kinds[kind] += 1
+        if kind == checks.SURPLUS:  # a faster stream's samples without a partner: counted, no warning
+            return
         self.rejected += 1
         self.last_rejection = reason
-        self.kinds[kind] += 1
         self._rejections.add(now)
 
     def rate(self, now: float) -> float:

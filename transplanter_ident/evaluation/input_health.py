@@ -60,7 +60,7 @@ class PairingMonitor:
             return OK, "no GNSS sample yet", ()
         tolerance_ms = 1e3 * stats.tolerance
         recent_misses = self._misses.count(now)
-        values = (("paired", str(stats.pairs)), ("unpaired", str(stats.misses)),
+        values = (("paired", str(stats.pairs)), ("unpaired", str(stats.misses)), ("surplus", str(stats.surplus)),
                   ("unpaired_recent", str(recent_misses)), ("unpaired_since_pair", str(self.misses_since_pair)),
                   ("pairing_tolerance_ms", f"{tolerance_ms:g}"), ("largest_miss_ms", f"{1e3 * stats.largest_miss:.1f}"),
                   ("last_offset_ms", "none" if stats.last_offset is None else f"{1e3 * stats.last_offset:+.1f}"))

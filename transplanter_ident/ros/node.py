@@ -54,6 +54,7 @@ from transplanter_ident.config.params_file import ParamsError, parameter_value
 from transplanter_ident.config.schema import PARAMS, SCHEMA
 from transplanter_ident.ekf.joint_ekf import Estimate, JointEKF, warm_up
 from transplanter_ident.ekf.persistence import Keeper, LearnedState, default_path
+from transplanter_ident.epochs import checks
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler
 from transplanter_ident.epochs.epoch import Epoch, Rejection
 from transplanter_ident.evaluation.health import HealthMonitor, HealthReport, should_publish
@@ -262,8 +263,11 @@ class EstimatorNode(Node):
 
     def _reject(self, rejection: Rejection) -> None:
         self._health.on_rejection(rejection, time.monotonic())
-        self._rejected += rejection.kind != "wrong_type"  # a sample; not the publisher check (offline has none)
+        self._rejected += rejection.kind not in checks.NOT_SUSPECT  # not a faster stream's surplus, a publisher check
         topic = self._topics.get(rejection.topic, "GNSS epoch")
+        if rejection.kind == checks.SURPLUS:  # a set-up, not a fault: said once, counted in /diagnostics
+            self.get_logger().info(f"{rejection.topic} ({topic}): {rejection.reason}", once=True)
+            return
         key = reason_class(rejection.reason) if rejection.kind == "other" else rejection.kind  # bounded
         self._warn((rejection.topic, key),
                    f"{rejection.topic} ({topic}) sample at t={rejection.stamp:.3f} rejected: {rejection.reason}")
