@@ -6,11 +6,13 @@
   Odometry stamped far in the future (issue #14): they are rejected and change nothing.
 * Velocity and heading that never pair: the /diagnostics ERROR comes at the latest with the second
   diagnostics message (diagnostics.period 1 s, so within 2 s) and names gnss.pairing_tolerance.
+* Velocity at 10 Hz with a 5 Hz heading: the surplus velocities are no suspect input, online as offline.
 """
 
 from __future__ import annotations
 
 import csv
+import math
 import subprocess
 import sys
 from dataclasses import replace
@@ -22,25 +24,35 @@ import ros_harness
 from ros_harness import ROOT, ros_env, run_scenario, stamp_fields
 from test_node import (
     HEAD,
+    PUBLISH_TYPES,
     STEER,
     VEL,
     assert_all_finite,
     bag_specs,
     max_relative_difference,
+    offline_outputs,
     online_outputs,
     record_spec,
+    sim_stream,
     spec_stamp,
+    specs_to_samples,
     steering_spec,
 )
 
 from transplanter_ident.bags import read_bag, yaw_quaternion
 from transplanter_ident.cli import simulate as simulate_cli
-from transplanter_ident.config.params_file import load_params
+from transplanter_ident.config.params_file import EstimatorParams, load_params
 from transplanter_ident.ekf.joint_ekf import run_sequence
 from transplanter_ident.ekf.layout import O_CF, O_STATUS, StepStatus
+from transplanter_ident.epochs import checks
+from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler
+from transplanter_ident.epochs.counted import assemble_counting
+from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.evaluation.health import should_publish
+from transplanter_ident.evaluation.validity import decide_sequence
 from transplanter_ident.sim.scenarios import build_config
-from transplanter_ident.sim.simulator import simulate
+from transplanter_ident.sim.signals import sine_steering
+from transplanter_ident.sim.simulator import SimConfig, simulate
 
 CONFIG = ROOT / "config" / "estimator.yaml"
 JOINT = "sensor_msgs/msg/JointState"
@@ -153,3 +165,40 @@ def test_unpaired_velocity_and_heading_are_a_diagnostics_error_naming_the_parame
     assert "gnss.pairing_tolerance 50 ms" in pairing[first]["message"]
     assert "miss by 80 ms" in pairing[first]["message"]
     assert all(s["level"] == 2 for s in pairing[first:])
+
+
+def test_a_heading_slower_than_the_velocity_is_judged_online_as_offline() -> None:
+    """Velocity at 10 Hz, heading at 5 Hz over DDS: the node's numbers and valid flags are the offline ones.
+
+    The velocity's samples without a heading are surplus, not suspect input (the node counts rejections
+    for the validity as assemble_counting does offline): the drive becomes valid, as offline.
+    """
+    config = SimConfig(duration=40.0, speed=2.0, steering=sine_steering(math.radians(15.0), 6.0), gnss_rate=10.0,
+                       steering_rate=50.0, seed=3)
+    specs, headings = [], 0
+    for _, order, spec in sim_stream(config, 500.0):
+        headings += order == 2
+        if not (order == 2 and headings % 2 == 0):  # every other heading left out
+            specs.append(spec)
+    params = EstimatorParams()
+    found, counts, rejections = assemble_counting(EpochAssembler(AssemblerSettings.from_params(params)),
+                                                  specs_to_samples(specs), [])
+    epochs = EpochArrays(found)
+    outputs = run_sequence(params.config, epochs)
+    valid = decide_sequence(params.config, params.validity, epochs, outputs, counts)
+    published = [should_publish(StepStatus(int(s))) for s in outputs[:, O_STATUS]]
+    expected_valid = [float(v) for v, p in zip(valid, published, strict=True) if p]
+    assert any(expected_valid) and sum(r.kind == checks.SURPLUS for r in rejections) > 150
+    reference = offline_outputs(specs_to_samples(specs), params)
+    result = run_scenario({
+        "estimator_args": ["--params-file", str(CONFIG)],
+        "record": record_spec(),
+        "publish_types": PUBLISH_TYPES,
+        "steps": [{"publish": specs, "pace": 0.002}, {"wait_for": ["measurement", len(reference), 30.0]},
+                  {"spin": 0.5}],
+    }, timeout=240)
+    assert result["alive"] and result["returncode"] == 0, result["log"]
+    online = online_outputs(result["records"])
+    assert max_relative_difference(online, reference) <= 1e-9
+    assert [row["valid"] for row in online] == expected_valid
+    assert "arrives faster than the heading" in result["log"]
