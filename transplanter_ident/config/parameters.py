@@ -95,6 +95,7 @@ class FilterOptions:
     change_shift_threshold: float = 10.0  # its CUSUM alarm level (log-likelihood ratio)
     change_process_noise: float = 2.0e-2  # stiffness Q density after an alarm, (ln C)^2/s
     change_hold: float = 4.0  # s the raised density lasts after an alarm
+    change_offset_variance: float = 3.0e-4  # rad^2 the steering offset may have moved by at an alarm (~1 deg)^2
     measurement_noise_from_covariance: bool = False  # R per epoch: the messages' variances, floored by R
     identifiability_check: bool = True  # a band along a direction the recent data do not pin is the prior's
     identifiability_memory: float = 60.0  # s of recent epochs whose Fisher information is summed
@@ -127,6 +128,7 @@ class FilterOptions:
                                                                                    "steering_scale_uncertainty",
                                                                                    "yaw_inertia_uncertainty",
                                                                                    "relaxation_uncertainty",
+                                                                                   "change_offset_variance",
                                                                                    "saturation_prior",
                                                                                    "max_tire_utilisation",
                                                                                    "relinearization_window"))

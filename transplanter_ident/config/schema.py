@@ -243,6 +243,10 @@ SCHEMA: tuple[Param, ...] = (
     _float("ekf.change_process_noise", 2.0e-2, "(ln C)^2/s", "stiffness Q density (relative) for change_hold "
            "after a change alarm", 1.0e-8, 10.0),
     _float("ekf.change_hold", 4.0, "s", "how long the raised stiffness Q lasts after a change alarm", 0.01, 600.0),
+    _float("ekf.change_offset_variance", 3.0e-4, "rad^2", "what the steering offset may have moved by when a change "
+           "alarm fires (a steering sensor knocked or re-mounted looks like a new surface): added to its variance "
+           "over change_hold, so the offset is learnt anew with the stiffness; 0: off (the alarm re-opens the "
+           "stiffness only)", 0.0, 1.0),
     # what the recent data pin (ekf/identifiability.py, /diagnostics "identifiability")
     _bool("ekf.identifiability_check", True, "publish, along a direction of (ln Cf, ln Cr) whose Cramer-Rao bound "
           "from the recent data exceeds ekf.max_identifiable_rel_std, at least the initial (prior) band"),

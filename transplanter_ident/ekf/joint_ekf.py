@@ -39,6 +39,7 @@ from transplanter_ident.ekf.layout import (
     S_ANTENNA_X,
     S_CHANGE_DETECTION,
     S_CHANGE_HOLD,
+    S_CHANGE_OFFSET_Q,
     S_CHANGE_Q,
     S_CUSUM_CAP,
     S_CUSUM_SCALE,
@@ -143,6 +144,7 @@ class FilterArrays:
         settings[S_SHIFT] = options.change_shift
         settings[S_SHIFT_THRESHOLD] = options.change_shift_threshold
         settings[S_CHANGE_HOLD] = options.change_hold
+        settings[S_CHANGE_OFFSET_Q] = options.change_offset_variance / options.change_hold
         settings[S_LINEAR_RANGE] = 1.0 if options.linear_range_check else 0.0
         settings[S_CHANGE_DETECTION] = 1.0 if options.change_detection else 0.0
         settings[S_R_FROM_COVARIANCE] = 1.0 if options.measurement_noise_from_covariance else 0.0

@@ -57,7 +57,9 @@ S_RELAXATION_UNCERTAINTY = 41  # m, 1-sigma of the relaxation length left out of
 S_MEASURE_ERRORS = 42
 #: 1: each R is widened by its innovations' lag-1 autocorrelation (noise_correlation.py); the tuner's objective sets 0
 S_NOISE_CORRELATION = 43
-N_SETTINGS = 44
+#: rad^2/s: the steering offset's Q density while a change alarm's raised density lasts (update.propagate_covariance)
+S_CHANGE_OFFSET_Q = 44
+N_SETTINGS = 45
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6

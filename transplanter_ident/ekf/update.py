@@ -16,7 +16,9 @@ from transplanter_ident.ekf.layout import (
     G_K0,
     G_K1,
     M_SPEED_CROSS,
+    S_CHANGE_OFFSET_Q,
     S_CHANGE_Q,
+    S_P0_OFFSET,
     V_SPEED_CROSS,
     V_SPEED_GAIN,
     W_F,
@@ -34,14 +36,15 @@ def make_update(n, nd, h1):  # noqa: ANN001, ANN201
 
     Returns (propagate_covariance, add_speed_noise, joseph_update, keep_speed_cross).
     """
-    nf, nr = nd, nd + 1
+    nf, nr, nb = nd, nd + 1, nd + 2  # theta_f, theta_r, steering offset
 
     @inline_kernel
     def propagate_covariance(p, q, dt, adapting, settings, scale, ws):
         """P = F P F^T + Q dt, F = [[F_motion], [0, I]]: the parameter states are random walks, Q a density.
 
         While ``adapting`` (after a change alarm) the stiffness density is at least the raised one
-        (relative: ``scale`` = dC/dtheta of each stiffness, 1 in log mode).
+        (relative: ``scale`` = dC/dtheta of each stiffness, 1 in log mode), and an estimated steering
+        offset's at least ``ekf.change_offset_variance`` / ``change_hold``: a knocked sensor alarms too.
         """
         for i in range(nd):
             for j in range(n):
@@ -63,6 +66,8 @@ def make_update(n, nd, h1):  # noqa: ANN001, ANN201
             density = q[i]
             if adapting and (i == nf or i == nr):
                 density = max(density, settings[S_CHANGE_Q] * scale[i - nf] * scale[i - nf])
+            elif adapting and i == nb and settings[S_P0_OFFSET] > 0.0:  # an estimated steering offset may have moved
+                density = max(density, settings[S_CHANGE_OFFSET_Q])
             p[i, i] += density * dt
 
     @inline_kernel
