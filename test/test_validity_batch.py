@@ -138,7 +138,9 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
                 outputs[start:stop, std] = rng.uniform(0.03, 0.15, stop - start) * (rng.random(stop - start) < 0.9)
                 outputs[start:stop, [sens_f, sens_r]] = rng.normal(0.0, 0.5, (stop - start, 2))
             elif what == 6:  # sensors noisier than R: the factors the innovations show, and the NIS against them
-                outputs[start:stop, [O_NOISE_SCALE_VY, O_NOISE_SCALE_SECOND]] = rng.uniform(1.0, 4.0, (stop - start, 2))
+                factors = rng.uniform(1.0, 4.0, (stop - start, 2))
+                outputs[start:stop, [O_NOISE_SCALE_VY, O_NOISE_SCALE_SECOND]] = np.where(
+                    rng.random((stop - start, 2)) < 0.05, math.nan, factors)  # NaN: as the batch takes it
                 outputs[start:stop, O_NIS_CONFIGURED] *= 3.0
                 outputs[start:stop, O_NIS] = np.where(rng.random(stop - start) < 0.1, math.nan, 2.0)
         settings = dataclasses.replace(

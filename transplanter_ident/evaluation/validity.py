@@ -185,7 +185,7 @@ class ValidityMonitor:
             reason = error.reason(measure, relative, self.settings)
             if reason is not None:
                 reasons.append(reason)
-        if max(sample.noise_factors) > self.settings.max_noise_factor:
+        if np.maximum(*sample.noise_factors) > self.settings.max_noise_factor:  # as validity_batch.noise_factor
             reasons.append("GNSS noisier than ekf.measurement_noise: the innovations show {:.2f} x its variance "
                            "(velocity), {:.2f} x (heading), beyond validity.max_noise_factor {:g}; set "
                            "ekf.measurement_noise, or tune it".format(*sample.noise_factors,
@@ -258,7 +258,8 @@ class ValidityMonitor:
         if _std([w.steering for w in window]) < s.min_steering_std and \
                 _std([w.yaw_rate for w in window]) < s.min_yaw_rate_std:
             reasons.append("too little excitation (steering and yaw rate nearly constant)")
-        nis = [float(consistency_nis(max(w.noise_factors), w.nis_measured, w.nis, s.max_noise_factor)) for w in window]
+        nis = [float(consistency_nis(np.maximum(*w.noise_factors), w.nis_measured, w.nis, s.max_noise_factor))
+               for w in window]
         predicted = [(w, x) for w, x in zip(window, nis, strict=True) if w.status in PREDICTED and math.isfinite(x)]
         if len(predicted) >= 5:
             total, dof = sum(x for _, x in predicted), 2 * len(predicted)
