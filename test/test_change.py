@@ -13,7 +13,7 @@ import math
 from dataclasses import replace
 
 import numpy as np
-from drives import NOISY_GNSS_R, judged_figures, noisy_late_drop, run_drive, sine_drive, step_change
+from drives import NOISY_GNSS_R, Run, judged_figures, noisy_late_drop, run_drive, sine_drive, step_change
 from helpers import simulate_epochs
 from test_ekf import epoch_list
 from test_validity import SETTINGS, epochs_of
@@ -180,7 +180,7 @@ def test_a_rise_is_seen_sooner_with_the_smaller_shift() -> None:
     assert now <= 0.14 and now < before, (now, before, delays)
 
 
-def knocked_sensor(step_deg: float, seed: int, options: FilterOptions) -> tuple[np.ndarray, np.ndarray, object]:
+def knocked_sensor(step_deg: float, seed: int, options: FilterOptions) -> tuple[np.ndarray, np.ndarray, Run]:
     """The identification drive of 180 s whose steering sensor reads ``step_deg`` more from 60 s on (knocked).
 
     Returns (valid from 60 s on, band covers both stiffnesses from 60 s on, the run).
