@@ -24,6 +24,7 @@ from independent_sim import independent_drive
 from test_validity import epochs_of, validity
 
 from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions
+from transplanter_ident.ekf.adaptation import SATURATION_REACH_SIGMAS
 from transplanter_ident.ekf.joint_ekf import Estimate
 from transplanter_ident.ekf.layout import (
     O_CF,
@@ -106,13 +107,14 @@ def slow_share(a: float, a_std: float, prior: float) -> tuple[float, float]:
     """The posterior of a, written out: N(a, a_std^2) times the prior N(0, prior^2), its mode where a >= 0.
 
     The std keeps what is left to the reach, the posterior variance and half the share. The reach is a
-    tire at min_friction (a = 1), or max(a, 0) + 2 a_std where that is less: the data exclude such a tire.
+    tire at min_friction (a = 1), or max(a, 0) + SATURATION_REACH_SIGMAS a_std where that is less: the data
+    exclude such a tire.
     """
     if a_std == 0.0:
         return 0.0, 1.0
     variance = 1.0 / (1.0 / a_std**2 + 1.0 / prior**2)
     share = max(variance / a_std**2 * a, 0.0)
-    reach = min(1.0, max(a, 0.0) + 2.0 * a_std)
+    reach = min(1.0, max(a, 0.0) + SATURATION_REACH_SIGMAS * a_std)
     return share, max(reach - share, 0.0) ** 2 + variance + (0.5 * share) ** 2
 
 
@@ -127,7 +129,7 @@ def test_the_compiled_correction_is_the_posterior_written_out(grippy: bool) -> N
               if grippy else simulate(sine_drive(3, **DRIVES["wet 25 deg"])))
     on, off = run_drive(result).outputs, run_drive(result, OFF).outputs
     assert np.max(on[:, O_SATURATION_STD]) > 0.0
-    reach = np.minimum(1.0, np.maximum(on[:, O_SATURATION], 0.0) + 2.0 * on[:, O_SATURATION_STD])
+    reach = np.minimum(1.0, np.maximum(on[:, O_SATURATION], 0.0) + SATURATION_REACH_SIGMAS * on[:, O_SATURATION_STD])
     assert np.any((reach < 0.5) & (on[:, O_SATURATION_STD] > 0.0)) == grippy
     for row_on, row_off in zip(on, off, strict=True):
         share, unpinned = slow_share(row_on[O_SATURATION], row_on[O_SATURATION_STD], PRIOR)
@@ -143,9 +145,9 @@ def test_large_slips_that_stay_linear_release_the_bias_of_a_slippery_tire() -> N
     """Grippy Magic Formula tires (mu 0.8, the independent simulator) at +-18 deg, 2.5 m/s, 10 Hz, 150 s, seeds 0-5.
 
     A tire at ekf.min_friction (0.3) would saturate visibly at these slips; the measure reads a ~ 0 with a
-    std of ~0.15, so the band keeps the bias up to max(a, 0) + 2 std only, not the whole bias at min_friction
-    (13 % of Cf). Valid from 30 s on in 80 % of the epochs (0-3 % when the band kept that whole bias),
-    none of them outside +-2 sigma; every final error within +-2 sigma.
+    std of ~0.15, so the band keeps the bias up to max(a, 0) + 1 std only, not the whole bias at min_friction
+    (13 % of Cf). Valid from 30 s on in 97 % of the epochs (80 % with the reach at 2 std, 0-3 % when the
+    band kept that whole bias), none of them outside +-2 sigma; every final error within +-2 sigma.
     """
     kept = missed = epochs = 0
     for seed in range(6):
@@ -159,7 +161,7 @@ def test_large_slips_that_stay_linear_release_the_bias_of_a_slippery_tire() -> N
         kept, missed, epochs = kept + int(valid.sum()), missed + int((valid & ~(front & rear)).sum()), epochs + int(
             after.sum())
         assert all(abs(e) <= 2.0 * std for e, std in zip(run.final_errors(), run.final_rel_std(), strict=True))
-    assert kept >= 0.6 * epochs and missed <= 0.05 * kept, (kept, missed, epochs)
+    assert kept >= 0.85 * epochs and missed <= 0.05 * kept, (kept, missed, epochs)
 
 
 def test_a_surface_change_restarts_the_measure() -> None:

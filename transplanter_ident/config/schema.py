@@ -203,7 +203,7 @@ SCHEMA: tuple[Param, ...] = (
     _float("ekf.saturation_prior", 0.5, "", "the innovations measure how far the tires saturate, as a fraction a "
            "of a tire at ekf.min_friction (a = 1 there, 0 on a linear tire; /diagnostics tire_saturation): Cf, Cr "
            "are corrected by a's posterior times that bias, with a prior N(0, this^2) (0.5: a field as slippery as "
-           "ekf.min_friction is a 2-sigma event); the std keeps the bias up to a = 1, or up to max(a, 0) + 2 std of the "
+           "ekf.min_friction is a 2-sigma event); the std keeps the bias up to a = 1, or up to max(a, 0) + 1 std of the "
            "measure where that is less; 0: off", 0.0, 10.0),
     _float("ekf.saturation_memory", 300.0, "s", "time constant of the tires' two measures: that one (a surface "
            "change restarts it) and of a relaxation length left out of vehicle.relaxation_length (/diagnostics "

@@ -353,7 +353,7 @@ FIRST_ORDER_ERROR = 0.5
 
 #: the saturation a band holds reaches the measure's upper bound at this many std, if below 1 (a tire at
 #: ``min_friction``): large slips that stay linear show a tire far grippier than that
-SATURATION_REACH_SIGMAS = 2.0
+SATURATION_REACH_SIGMAS = 1.0
 
 
 @inline_kernel
