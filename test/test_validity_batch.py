@@ -21,6 +21,7 @@ from transplanter_ident.ekf.layout import (
     O_CF,
     O_CF_STD,
     O_CHANGE,
+    O_CHANGE_EVIDENCE,
     O_CR_STD,
     O_NIS,
     O_NIS_CONFIGURED,
@@ -111,14 +112,14 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
     rng = np.random.default_rng(11)
     epochs, clean = _drive("clean", 2)
     statuses = np.array([int(s) for s in StepStatus])
-    flips = drifts = measured = noisier = 0
+    flips = drifts = measured = noisier = suspected = 0
     for case in range(100):
         outputs = clean.copy()
         n = len(outputs)
         for _ in range(int(rng.integers(0, 6))):
             start = int(rng.integers(0, n))
             stop = min(n, start + int(rng.integers(1, 300)))
-            what = int(rng.integers(0, 7))
+            what = int(rng.integers(0, 8))
             if what == 0:
                 outputs[start:stop, O_STATUS] = rng.choice(statuses, stop - start)
             elif what == 1:
@@ -143,6 +144,9 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
                     rng.random((stop - start, 2)) < 0.05, math.nan, factors)  # NaN: as the batch takes it
                 outputs[start:stop, O_NIS_CONFIGURED] *= 3.0
                 outputs[start:stop, O_NIS] = np.where(rng.random(stop - start) < 0.1, math.nan, 2.0)
+            elif what == 7:  # the directional change test gathering evidence (a NaN: as the batch takes it)
+                outputs[start:stop, O_CHANGE_EVIDENCE] = np.where(rng.random(stop - start) < 0.05, math.nan,
+                                                                  rng.uniform(0.0, 1.0, stop - start))
         settings = dataclasses.replace(
             SETTINGS, window=float(rng.choice((2.0, 5.0, 10.0))), hold_on=float(rng.choice((0.2, 1.0, 3.0))),
             hold_off=float(rng.choice((0.1, 0.5, 1.0))), max_autocorrelation=float(rng.choice((0.05, 0.3))),
@@ -154,7 +158,8 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
             max_relaxation_shift=float(rng.choice((0.3, 1.0, 100.0))),
             max_steering_gain_sigmas=float(rng.choice((1.0, 3.0))),
             max_steering_gain_shift=float(rng.choice((0.3, 1.0, 100.0))),
-            max_noise_factor=float(rng.choice((1.0, 2.25, 100.0))))
+            max_noise_factor=float(rng.choice((1.0, 2.25, 100.0))),
+            max_change_evidence=float(rng.choice((0.3, 0.5, 1.0))))
         rejected = [0] * n
         for _ in range(int(rng.integers(0, 4))):
             start = int(rng.integers(0, n))
@@ -173,8 +178,10 @@ def test_same_decisions_on_perturbed_outputs_and_settings() -> None:
         measured += not np.array_equal(expected, monitor_decisions(unmeasured, epochs, outputs, rejected))
         noisier += not np.array_equal(expected, monitor_decisions(dataclasses.replace(settings, max_noise_factor=1.0e4),
                                                                   epochs, outputs, rejected))
+        suspected += not np.array_equal(expected, monitor_decisions(
+            dataclasses.replace(settings, max_change_evidence=1.0), epochs, outputs, rejected))
     assert flips > 50  # the cases switch valid on and off, not one constant answer
-    assert drifts >= 3 and measured >= 3 and noisier >= 3  # the drift, model error and noise tests decided some
+    assert drifts >= 3 and measured >= 3 and noisier >= 3 and suspected >= 3  # these tests decided some
 
 
 def test_times_that_go_back_use_the_monitor() -> None:

@@ -19,7 +19,9 @@ Either sum past its threshold is an alarm: for ``change_hold`` s the stiffness r
 one large, badly linearised step; the tires' saturation is measured anew and all sums restart.
 Each epoch adds at most half its test's threshold: one outlier alone never raises an alarm.
 
-The decorrelated updates also go out (layout.O_UPDATE_F/R; 0 at an alarm and while the raised
+Halfway to an alarm already counts (:func:`write_change_evidence`, the validity's "change suspected"):
+an estimate that lags a new surface by more than its band is not published as valid while the
+test gathers the rest. The decorrelated updates also go out (layout.O_UPDATE_F/R; 0 at an alarm and while the raised
 density lasts) for the validity's drift test, which sums them over a longer span: a stiffness that
 drifts, rather than steps, keeps them pushing one way by less than the directional test's shift.
 """
@@ -39,6 +41,7 @@ from transplanter_ident.ekf.layout import (
     M_SHIFT_POWER,
     N_SHIFT,
     O_CHANGE,
+    O_CHANGE_EVIDENCE,
     O_CUSUM,
     O_UPDATE_F,
     O_UPDATE_R,
@@ -94,6 +97,15 @@ def shift_alarm(memo, settings, dt, u_f, u_r, out):
         memo[M_SHIFT + i] = g
         alarm = alarm or g > threshold
     return alarm
+
+
+@inline_kernel
+def write_change_evidence(memo, settings, out):
+    """out[O_CHANGE_EVIDENCE]: the directional test's largest CUSUM as a fraction of its alarm level."""
+    largest = 0.0
+    for i in range(N_SHIFT):
+        largest = max(largest, memo[M_SHIFT + i])
+    out[O_CHANGE_EVIDENCE] = largest / settings[S_SHIFT_THRESHOLD]
 
 
 @inline_kernel

@@ -10,6 +10,7 @@ from transplanter_ident.ekf.layout import (
     O_CF,
     O_CF_STD,
     O_CHANGE,
+    O_CHANGE_EVIDENCE,
     O_CORRELATION,
     O_CR,
     O_CR_STD,
@@ -118,6 +119,11 @@ class Estimate:
     def saturation(self) -> tuple[float, float]:
         """(a, std a): the tires' saturation the innovations show, 1 = a tire at ekf.min_friction (std 0: not yet)."""
         return self._pair(O_SATURATION, O_SATURATION_STD, 0.0)
+
+    @property
+    def change_evidence(self) -> float:
+        """The directional change test's CUSUM over its alarm level (0 .. 1; 0 when not recorded)."""
+        return self.row[O_CHANGE_EVIDENCE] if len(self.row) > O_CHANGE_EVIDENCE else 0.0
 
     @property
     def noise_factors(self) -> tuple[float, float]:

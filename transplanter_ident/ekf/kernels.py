@@ -49,7 +49,7 @@ from transplanter_ident.ekf.adaptation import (
     score_signature,
     signature_estimate,
 )
-from transplanter_ident.ekf.change import detect_change, normalised_update
+from transplanter_ident.ekf.change import detect_change, normalised_update, write_change_evidence
 from transplanter_ident.ekf.layout import (
     HEADING_STATES,
     M_ADAPT_UNTIL,
@@ -214,6 +214,7 @@ def make_kernels(heading, lagged=False):
         out[O_NOISE_SCALE_VY] = noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY)
         out[O_NOISE_SCALE_SECOND] = noise_scale(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND)
         out[O_NOISE_CORRELATION_VY], out[O_NOISE_CORRELATION_SECOND] = correlations(memo, settings)
+        write_change_evidence(memo, settings, out)
 
     @called_kernel
     def restart_motion(x, p, model, memo, settings, status, t, vy_antenna, psi, yaw_rate, out):

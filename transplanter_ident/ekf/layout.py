@@ -82,7 +82,10 @@ O_RELAXATION, O_RELAXATION_STD, O_RELAXATION_SENS_F, O_RELAXATION_SENS_R = 39, 4
 O_SCALE_ESTIMATE, O_SCALE_ESTIMATE_STD = 43, 44  # the steering gain left out as the innovations show it (std 0: none)
 #: the lag-1 autocorrelation of each measurement's normalised innovations that widens its R (noise_correlation.py)
 O_NOISE_CORRELATION_VY, O_NOISE_CORRELATION_SECOND = 45, 46
-N_OUTPUTS = 47
+#: the directional change test's largest CUSUM over ekf.change_shift_threshold: 0, up to 1 at an alarm (change.py);
+#: the validity's "change suspected" check reads it
+O_CHANGE_EVIDENCE = 47
+N_OUTPUTS = 48
 
 # memo vector
 M_T_PREV, M_INITIALISED, M_GATED, M_CUSUM, M_ADAPT_UNTIL, M_DIVERGED = 0, 1, 2, 3, 4, 5

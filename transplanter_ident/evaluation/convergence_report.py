@@ -45,7 +45,8 @@ def convergence_report(node: str, estimate: Estimate | None, updates: int, limit
               ("relaxation_estimate_m", "{:+.3f} {:.3f}".format(*estimate.relaxation_estimate)),
               ("relaxation_sensitivity_per_cm", "{:+.4f} {:+.4f}".format(*(0.01 * v for v in estimate.relaxation_sensitivity))),
               ("steering_gain_estimate_percent", "{:+.2f} {:.2f}".format(*(100 * v for v in estimate.steering_gain_estimate))),
-              ("scale_sensitivity_per_percent", "{:+.4f} {:+.4f}".format(*(0.01 * v for v in estimate.scale_sensitivity))))
+              ("scale_sensitivity_per_percent", "{:+.4f} {:+.4f}".format(*(0.01 * v for v in estimate.scale_sensitivity))),
+              ("change_evidence", f"{estimate.change_evidence:.2f}"))
     if converged:
         return HealthReport(name, OK, f"converged: Cf {cf:.0f} +- {100 * rel_f:.1f} %, "
                             f"Cr {cr:.0f} +- {100 * rel_r:.1f} %", values)

@@ -20,6 +20,8 @@ of these hold over a window of data time (the same decision online and offline):
   normalised by its std (layout.O_UPDATE_F/R, N(0, 1) while the stiffness holds still), do not sum
   beyond ``max_drift_sigmas`` sqrt(n): a stiffness that drifts (a changing surface or load) faster
   than the random walk lets the estimate follow keeps pushing them one way, and the band lags it;
+  nor has the directional change test gathered ``max_change_evidence`` of its alarm level
+  (layout.O_CHANGE_EVIDENCE): a new surface is suspected, and the estimate lags it until the alarm;
 * trusted input (issue #14): at most ``max_suspect_fraction`` of the window's epochs follow a
   rejected input sample (:attr:`Sample.rejected`: the samples and epochs rejected since the
   previous epoch, in the order they were processed: the same online and offline) or were gated,
@@ -44,6 +46,7 @@ from transplanter_ident.ekf.layout import (
     O_CF,
     O_CF_STD,
     O_CHANGE,
+    O_CHANGE_EVIDENCE,
     O_CR,
     O_CR_STD,
     O_E0,
@@ -97,6 +100,7 @@ class Sample:
     measures: tuple[Measure, ...] = ()  # the filter's measures of model errors left out (model_errors.MODEL_ERRORS)
     updates: tuple[float, float] = (0.0, 0.0)  # the normalised stiffness updates (O_UPDATE_F/R; 0: none)
     change: bool = False  # a surface-change alarm at this epoch (O_CHANGE): the drift test starts again
+    change_evidence: float = 0.0  # the directional change test's CUSUM over its alarm level (O_CHANGE_EVIDENCE)
 
 
 @dataclass(frozen=True)
@@ -190,6 +194,9 @@ class ValidityMonitor:
                            "(velocity), {:.2f} x (heading), beyond validity.max_noise_factor {:g}; set "
                            "ekf.measurement_noise, or tune it".format(*sample.noise_factors,
                                                                       self.settings.max_noise_factor))
+        if sample.change_evidence > self.settings.max_change_evidence:  # as validity_batch
+            reasons.append(f"a stiffness change suspected: the directional change test stands at "
+                           f"{100 * sample.change_evidence:.0f} % of its alarm level (the estimate may lag a new surface)")
         return reasons
 
     def _plausibility(self, window: list[Sample]) -> list[str]:
@@ -318,7 +325,7 @@ def sample_of(epoch: Epoch, row: np.ndarray, rejected: int = 0) -> Sample:
                   noise_factors=(float(row[O_NOISE_SCALE_VY]), float(row[O_NOISE_SCALE_SECOND])),
                   whitened_vy=float(row[O_E0]) / math.sqrt(s00) if s00 > 0.0 else 0.0, rejected=int(rejected),
                   measures=measures_of(row), updates=(float(row[O_UPDATE_F]), float(row[O_UPDATE_R])),
-                  change=bool(row[O_CHANGE] > 0.0))
+                  change=bool(row[O_CHANGE] > 0.0), change_evidence=float(row[O_CHANGE_EVIDENCE]))
 
 
 def monitor_for(config: EstimatorConfig, settings: ValiditySettings) -> ValidityMonitor:

@@ -21,6 +21,7 @@ from transplanter_ident.ekf.layout import (
     O_CF,
     O_CF_STD,
     O_CHANGE,
+    O_CHANGE_EVIDENCE,
     O_CR,
     O_CR_STD,
     O_E0,
@@ -105,6 +106,7 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
         for error in MODEL_ERRORS:  # a GNSS delay, a relaxation length, a steering gain left out (model_errors.py)
             soft |= error.fails(outputs, front, rear, settings)
         soft |= noise_factor(outputs) > settings.max_noise_factor
+        soft |= outputs[:, O_CHANGE_EVIDENCE] > settings.max_change_evidence
         s00 = outputs[:, O_S00]
         whitened = np.divide(outputs[:, O_E0], np.sqrt(np.where(s00 > 0.0, s00, 1.0)), where=s00 > 0.0,
                              out=np.zeros(n))
