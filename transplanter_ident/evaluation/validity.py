@@ -10,7 +10,8 @@ of these hold over a window of data time (the same decision online and offline):
 * excited: the steering and the yaw rate varied enough (a held step identifies little);
 * consistent: the normalised innovation squared (NIS, chi^2 with 2 dof per epoch when the
   filter's model and R are right) passes a windowed chi^2 test, and the whitened innovations are
-  not autocorrelated (an unconfigured GNSS delay, a wrong lever arm or a wrong R show there);
+  not autocorrelated (an unconfigured GNSS delay, a wrong lever arm or a wrong R show there); over
+  the epochs whose measurement the filter used (a gated outlier counts as suspect input instead);
 * plausible: the heading is not a course over ground (then vy is zero by construction while the
   vehicle turns: the antenna's vy stays well below what a steady turn gives there, (lr + antenna_x) r
   less the rear axle's slip at the estimated Cr), and the GNSS velocity agrees with the heading (an
@@ -64,6 +65,8 @@ from transplanter_ident.epochs.epoch import Epoch, EpochArrays
 from transplanter_ident.evaluation.model_errors import MODEL_ERRORS, Measure, measures_of
 from transplanter_ident.evaluation.validity_batch import (
     MIN_DRIFT_UPDATES,
+    PREDICTED,
+    USED,
     consistency_nis,
     decide_batch,
     steady_antenna_vy,
@@ -71,8 +74,6 @@ from transplanter_ident.evaluation.validity_batch import (
 
 #: s of data between two evaluations of the window checks
 RECHECK = 1.0
-#: statuses whose innovation is a proper one-step prediction error
-PREDICTED = frozenset({StepStatus.UPDATED, StepStatus.NONLINEAR, StepStatus.GATED})
 #: statuses of an epoch whose measurement the filter did not trust
 DISTRUSTED = frozenset({StepStatus.GATED, StepStatus.REINITIALISED, StepStatus.REJECTED_INVALID,
                         StepStatus.REJECTED_STAMP, StepStatus.DIVERGED, StepStatus.RESTARTED})
@@ -267,13 +268,13 @@ class ValidityMonitor:
             reasons.append("too little excitation (steering and yaw rate nearly constant)")
         nis = [float(consistency_nis(np.maximum(*w.noise_factors), w.nis_measured, w.nis, s.max_noise_factor))
                for w in window]
-        predicted = [(w, x) for w, x in zip(window, nis, strict=True) if w.status in PREDICTED and math.isfinite(x)]
-        if len(predicted) >= 5:
-            total, dof = sum(x for _, x in predicted), 2 * len(predicted)
+        used = [(w, x) for w, x in zip(window, nis, strict=True) if w.status in USED and math.isfinite(x)]
+        if len(used) >= 5:
+            total, dof = sum(x for _, x in used), 2 * len(used)
             if total > dof + s.nis_quantile_sigmas * math.sqrt(2.0 * dof):
-                reasons.append(f"innovations inconsistent with R and Q (mean NIS {total / len(predicted):.1f}, "
+                reasons.append(f"innovations inconsistent with R and Q (mean NIS {total / len(used):.1f}, "
                                "expected 2)")
-            rho = _lag1_autocorrelation([w.whitened_vy for w, _ in predicted])
+            rho = _lag1_autocorrelation([w.whitened_vy for w, _ in used])
             if rho > s.max_autocorrelation:
                 reasons.append(f"innovations correlated in time (lag-1 {rho:.2f}): an unconfigured GNSS delay "
                                "(gnss.delay) or lever arm, or GNSS errors correlated in time (a receiver smoothing "

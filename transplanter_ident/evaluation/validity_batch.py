@@ -39,7 +39,12 @@ from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.evaluation.model_errors import MODEL_ERRORS
 from transplanter_ident.jit import entry_kernel
 
-_PREDICTED = (StepStatus.UPDATED, StepStatus.NONLINEAR, StepStatus.GATED)
+#: statuses whose innovation is a proper one-step prediction error (the plausibility checks' epochs)
+PREDICTED = frozenset({StepStatus.UPDATED, StepStatus.NONLINEAR, StepStatus.GATED})
+#: of those, the ones whose measurement the filter used: the consistency test's. A gated outlier (one
+#: sample with a wrong stamp: a NIS of hundreds) is the suspect check's; in the NIS sum it failed the
+#: whole window for its length (10 s) while the estimate had not taken it
+USED = frozenset({StepStatus.UPDATED, StepStatus.NONLINEAR})
 #: fewer stiffness updates in the drift test's span: no verdict (ValidityMonitor._drift, _drifting)
 MIN_DRIFT_UPDATES = 10
 
@@ -89,7 +94,8 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
     status = outputs[:, O_STATUS].astype(np.int64)
     if not np.all(outputs[:, O_STATUS] == status) or not np.isin(status, [int(s) for s in StepStatus]).all():
         return None
-    predicted = np.isin(status, [int(s) for s in _PREDICTED])
+    predicted = np.isin(status, [int(s) for s in PREDICTED])
+    used = np.isin(status, [int(s) for s in USED])
     suspect = (np.asarray(rejected, dtype=np.int64).reshape(-1) != 0) | np.isin(status, [int(s) for s in distrusted])
     if len(suspect) != n:
         return None
@@ -114,7 +120,7 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
     nis = np.ascontiguousarray(consistency_nis(noise_factor(outputs), outputs[:, O_NIS], outputs[:, O_NIS_CONFIGURED],
                                                settings.max_noise_factor), dtype=np.float64)
     plaus = np.flatnonzero(predicted & (speed > 0.0))  # the plausibility checks' epochs
-    consist = np.flatnonzero(predicted & np.isfinite(nis))  # the NIS and autocorrelation checks' epochs
+    consist = np.flatnonzero(used & np.isfinite(nis))  # the NIS and autocorrelation checks' epochs
     beta = list(map(math.atan2, vy[plaus].tolist(), speed[plaus].tolist()))
     tp, rp = t[plaus].tolist(), r[plaus].tolist()
     rate = np.zeros(len(plaus))  # course change rate from the previous plausibility epoch to this one
