@@ -44,9 +44,9 @@ def sim_samples(result: SimResult, *, gnss_first: bool = False) -> list[Sample]:
 
 
 def assembler_settings(vehicle: VehicleParams, **overrides: object) -> AssemblerSettings:
-    """AssemblerSettings with the vehicle's lever arm, steering limit and steering sensor (scale, wheel)."""
+    """AssemblerSettings with the vehicle's lever arm, heading offset, steering limit and steering sensor (scale, wheel)."""
     values = {"antenna_x": vehicle.antenna_x, "antenna_y": vehicle.antenna_y, "max_steering": vehicle.max_steering,
-              **steering_sensor(vehicle)}
+              "heading_offset": vehicle.heading_offset, **steering_sensor(vehicle)}
     values.update(overrides)
     return AssemblerSettings(**values)
 

@@ -211,6 +211,8 @@ class ValiditySettings:
     drift_window: float = 90.0  # s of stiffness updates (since the last change alarm) the drift test sums; 0: off
     max_drift_sigmas: float = 2.5  # their normalised sum beyond +-this x sqrt(n): the stiffness drifts, the band lags
     max_change_evidence: float = 0.5  # the directional change test's CUSUM past this fraction of its alarm level
+    max_heading_sigmas: float = 100.0  # a heading misalignment this many std from 0 fails (100: off, the shift decides)
+    max_heading_shift: float = 1.5  # the Cf or Cr shift the measured misalignment implies (lower 1-sigma), in std
 
     def __post_init__(self) -> None:
         check_fields(self, "validity", positive=("window", "max_rel_std", "nis_quantile_sigmas",
@@ -219,7 +221,7 @@ class ValiditySettings:
                                                  "max_delay_sigmas", "max_delay_shift", "max_relaxation_sigmas",
                                                  "max_relaxation_shift", "max_steering_gain_sigmas",
                                                  "max_steering_gain_shift", "max_drift_sigmas",
-                                                 "max_change_evidence"),
+                                                 "max_change_evidence", "max_heading_sigmas", "max_heading_shift"),
                      non_negative=("min_steering_std", "min_yaw_rate_std", "hold_on", "hold_off", "drift_window"))
         if isinstance(self.max_noise_factor, bool) or not (math.isfinite(self.max_noise_factor)
                                                            and self.max_noise_factor >= 1.0):

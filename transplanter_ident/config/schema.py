@@ -296,6 +296,10 @@ SCHEMA: tuple[Param, ...] = (
     *_measured_error("steering_gain", "a steering gain left out of vehicle.steering_scale (or a yaw inertia off "
                      "vehicle.iz, which looks alike)", "steering gain error", "steering_gain_estimate_percent",
                      "per unit of gain", 3.0, 1.5),
+    *_measured_error("heading", "a GNSS heading misaligned with the vehicle's x axis beyond vehicle.heading_offset "
+                     "(100, the default: off; the stiffness hardly moves with it, ~0.2 % per degree at 2 m/s, so the "
+                     "shift test decides)", "heading misalignment", "heading_misalignment_deg", "per radian", 100.0,
+                     1.5),
     _float("validity.max_autocorrelation", 0.6, "", "lag-1 autocorrelation of the whitened vy innovation above "
            "which the filter is inconsistent (an unconfigured delay, GNSS errors correlated longer than "
            "ekf.noise_correlation's widening of R holds; 0.3 without it)",

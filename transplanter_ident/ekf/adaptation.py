@@ -34,6 +34,7 @@ from transplanter_ident.ekf.layout import (
     M_DELAY_INFORMATION,
     M_DELAY_SCORE,
     M_DELAY_SETTLED,
+    M_HEADING_BIAS,
     M_INERTIA_BIAS,
     M_NOISE_SECOND,
     M_NOISE_SPAN_SECOND,
@@ -161,15 +162,16 @@ def propagate_bias(memo, slot, n, nd, h1, antenna_x, updated, d_f, d_r, d_b, ws)
     """
     for i in range(nd):
         ws[W_BIAS, B_DIRECT, i] = ws[W_F, i, nd] * d_f + ws[W_F, i, nd + 1] * d_r + ws[W_F, i, nd + 2] * d_b
-    return carry_bias(memo, slot, n, nd, h1, antenna_x, updated, B_DIRECT, ws)
+    return carry_bias(memo, slot, n, nd, h1, antenna_x, updated, B_DIRECT, ws, 0.0)
 
 
 @inline_kernel
-def carry_bias(memo, slot, n, nd, h1, antenna_x, updated, direct, ws):
+def carry_bias(memo, slot, n, nd, h1, antenna_x, updated, direct, ws, measured):
     """B <- F b + g over the interval, g in ws[W_BIAS, direct] (the motion the prediction misses); then the update.
 
-    An update (gain K in ws[W_GAIN], zero rows where the step held them) takes b <- (I - K H) b.
-    Called once the step is accepted; returns H b before the update.
+    ``measured``: what the model error adds to the vy measurement (heading_signature.py; 0 for the others).
+    An update (gain K in ws[W_GAIN], zero rows where the step held them) takes b <- (I - K (H b + m)).
+    Called once the step is accepted; returns H b + m before the update: the innovation the error leaves.
     """
     for i in range(n):
         acc = memo[slot + i]
@@ -178,7 +180,7 @@ def carry_bias(memo, slot, n, nd, h1, antenna_x, updated, direct, ws):
             for j in range(n):
                 acc += ws[W_F, i, j] * memo[slot + j]
         ws[W_VEC, V_BIAS, i] = acc
-    hb0 = ws[W_VEC, V_BIAS, X_VY] + antenna_x * ws[W_VEC, V_BIAS, X_R]
+    hb0 = ws[W_VEC, V_BIAS, X_VY] + antenna_x * ws[W_VEC, V_BIAS, X_R] + measured
     hb1 = ws[W_VEC, V_BIAS, h1]
     for i in range(n):
         b = ws[W_VEC, V_BIAS, i]
@@ -237,7 +239,7 @@ def propagate_inertia_bias(memo, settings, n, nd, h1, antenna_x, updated, ws):
     ``predict_inertia_gain`` left in ws[W_BIAS, B_INERTIA]. Only with ``ekf.yaw_inertia_uncertainty`` > 0.
     """
     if settings[S_INERTIA_UNCERTAINTY] > 0.0:
-        carry_bias(memo, M_INERTIA_BIAS, n, nd, h1, antenna_x, updated, B_INERTIA, ws)
+        carry_bias(memo, M_INERTIA_BIAS, n, nd, h1, antenna_x, updated, B_INERTIA, ws, 0.0)
 
 
 @inline_kernel
@@ -265,6 +267,7 @@ def forget_motion_bias(memo, nd):
         memo[M_SCALE_BIAS + i] = 0.0
         memo[M_INERTIA_BIAS + i] = 0.0
         memo[M_RELAXATION_BIAS + i] = 0.0
+        memo[M_HEADING_BIAS + i] = 0.0
 
 
 @inline_kernel

@@ -20,6 +20,8 @@ from transplanter_ident.ekf.layout import (
     O_DELAY_SENS_R,
     O_E0,
     O_E1,
+    O_HEADING_ESTIMATE,
+    O_HEADING_ESTIMATE_STD,
     O_NIS,
     O_NOISE_CORRELATION_SECOND,
     O_NOISE_CORRELATION_VY,
@@ -119,6 +121,11 @@ class Estimate:
     def saturation(self) -> tuple[float, float]:
         """(a, std a): the tires' saturation the innovations show, 1 = a tire at ekf.min_friction (std 0: not yet)."""
         return self._pair(O_SATURATION, O_SATURATION_STD, 0.0)
+
+    @property
+    def heading_misalignment(self) -> tuple[float, float]:
+        """(rad, std rad) of a heading misaligned with the vehicle beyond vehicle.heading_offset (std 0: not yet)."""
+        return self._pair(O_HEADING_ESTIMATE, O_HEADING_ESTIMATE_STD, 0.0)
 
     @property
     def change_evidence(self) -> float:

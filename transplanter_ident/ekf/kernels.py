@@ -47,31 +47,28 @@ from transplanter_ident.ekf.adaptation import (
     saturation_share,
     score_model_errors,
     score_signature,
-    signature_estimate,
 )
-from transplanter_ident.ekf.change import detect_change, normalised_update, write_change_evidence
+from transplanter_ident.ekf.change import detect_change, normalised_update
+from transplanter_ident.ekf.heading_signature import propagate_heading_bias
 from transplanter_ident.ekf.layout import (
     HEADING_STATES,
     M_ADAPT_UNTIL,
     M_BIAS,
     M_CUSUM,
     M_DELAY_BIAS,
-    M_DELAY_INFORMATION,
-    M_DELAY_SCORE,
     M_DIVERGED,
     M_GATED,
+    M_HEADING_BIAS,
+    M_HEADING_INFORMATION,
+    M_HEADING_SCORE,
     M_INITIALISED,
     M_LAG_ACTIVE,
     M_LAG_SPEED,
-    M_NOISE_SECOND,
-    M_NOISE_SPAN_SECOND,
     M_NOISE_SPAN_VY,
     M_NOISE_VY,
     M_RELAXATION_BIAS,
     M_RELAXATION_INFORMATION,
     M_RELAXATION_SCORE,
-    M_SATURATION_INFORMATION,
-    M_SATURATION_SCORE,
     M_SCALE_BIAS,
     M_SCALE_INFORMATION,
     M_SCALE_SCORE,
@@ -86,32 +83,21 @@ from transplanter_ident.ekf.layout import (
     O_CF,
     O_CF_STD,
     O_CORRELATION,
-    O_DELAY_ESTIMATE,
-    O_DELAY_ESTIMATE_STD,
     O_DELAY_SENS_F,
     O_DT,
     O_E0,
     O_E1,
+    O_HEADING_SENS_F,
     O_NIS,
     O_NIS_CONFIGURED,
-    O_NOISE_CORRELATION_SECOND,
-    O_NOISE_CORRELATION_VY,
-    O_NOISE_SCALE_SECOND,
-    O_NOISE_SCALE_VY,
     O_OFFSET,
     O_OFFSET_STD,
     O_R,
     O_R_MODEL,
-    O_RELAXATION,
     O_RELAXATION_SENS_F,
-    O_RELAXATION_STD,
     O_S00,
     O_S01,
     O_S11,
-    O_SATURATION,
-    O_SATURATION_STD,
-    O_SCALE_ESTIMATE,
-    O_SCALE_ESTIMATE_STD,
     O_SCALE_SENS_F,
     O_SLIP_F,
     O_SLIP_R,
@@ -147,7 +133,8 @@ from transplanter_ident.ekf.layout import (
     Z_VY,
     StepStatus,
 )
-from transplanter_ident.ekf.noise_correlation import correlations, effective_noise, learn_noise
+from transplanter_ident.ekf.measure_outputs import write_measures
+from transplanter_ident.ekf.noise_correlation import effective_noise, learn_noise
 from transplanter_ident.ekf.prediction import make_prediction
 from transplanter_ident.ekf.recovery import make_recovery
 from transplanter_ident.ekf.relaxation_signature import propagate_relaxation_bias, slip_deficits
@@ -199,22 +186,14 @@ def make_kernels(heading, lagged=False):
             out[O_DELAY_SENS_F + k] = -dc * memo[M_DELAY_BIAS + nf + k] / c if c != 0.0 else 0.0  # estimate - truth
             out[O_SCALE_SENS_F + k] = -dc * memo[M_SCALE_BIAS + nf + k] / c if c != 0.0 else 0.0
             out[O_RELAXATION_SENS_F + k] = -dc * memo[M_RELAXATION_BIAS + nf + k] / c if c != 0.0 else 0.0
+            out[O_HEADING_SENS_F + k] = -dc * memo[M_HEADING_BIAS + nf + k] / c if c != 0.0 else 0.0
         out[O_OFFSET] = x[nb]
         out[O_OFFSET_STD] = math.sqrt(max(p[nb, nb], 0.0))
         denominator = math.sqrt(max(p[nf, nf], 0.0) * max(p[nr, nr], 0.0))
         out[O_CORRELATION] = p[nf, nr] / denominator if denominator > 0.0 else 0.0
         out[O_VY_MODEL] = vy_model
         out[O_R_MODEL] = r_model
-        out[O_DELAY_ESTIMATE], out[O_DELAY_ESTIMATE_STD] = signature_estimate(memo, M_DELAY_SCORE, M_DELAY_INFORMATION)
-        out[O_SATURATION], out[O_SATURATION_STD] = signature_estimate(memo, M_SATURATION_SCORE,
-                                                                      M_SATURATION_INFORMATION)
-        out[O_RELAXATION], out[O_RELAXATION_STD] = signature_estimate(memo, M_RELAXATION_SCORE,
-                                                                      M_RELAXATION_INFORMATION)
-        out[O_SCALE_ESTIMATE], out[O_SCALE_ESTIMATE_STD] = signature_estimate(memo, M_SCALE_SCORE, M_SCALE_INFORMATION)
-        out[O_NOISE_SCALE_VY] = noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY)
-        out[O_NOISE_SCALE_SECOND] = noise_scale(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND)
-        out[O_NOISE_CORRELATION_VY], out[O_NOISE_CORRELATION_SECOND] = correlations(memo, settings)
-        write_change_evidence(memo, settings, out)
+        write_measures(memo, settings, out)
 
     @called_kernel
     def restart_motion(x, p, model, memo, settings, status, t, vy_antenna, psi, yaw_rate, out):
@@ -378,7 +357,9 @@ def make_kernels(heading, lagged=False):
         tire0, tire1 = propagate_tire_bias(memo, vehicle, settings, n, nd, h1, antenna_x, updated, out[O_SLIP_F],
                                            out[O_SLIP_R], cf_now, cr_now, log_state, ws)
         g0, g1 = propagate_delay_bias(memo, n, nd, h1, antenna_x, updated, steering_rate, ws)
-        gain0 = gain1 = lag0 = 0.0
+        gain0 = gain1 = lag0 = head0 = head1 = 0.0
+        if measuring:
+            head0, head1 = propagate_heading_bias(memo, n, nd, h1, antenna_x, updated, speed, ws)
         if measuring or settings[S_SCALE_UNCERTAINTY] > 0.0:
             gain0, gain1 = propagate_scale_bias(memo, n, nd, h1, antenna_x, updated, steering, ws)
         propagate_inertia_bias(memo, settings, n, nd, h1, antenna_x, updated, ws)
@@ -393,6 +374,8 @@ def make_kernels(heading, lagged=False):
                             0.0, e0, 0.0, s00, 0.0, 1.0, s00)  # vy alone (relaxation_signature.py)
             score_signature(memo, M_SCALE_SCORE, M_SCALE_INFORMATION, settings[S_SATURATION_MEMORY], dt, gain0,
                             gain1, e0, e1, s00, s01, s11, det)
+            score_signature(memo, M_HEADING_SCORE, M_HEADING_INFORMATION, settings[S_SATURATION_MEMORY], dt, head0,
+                            head1, e0, e1, s00, s01, s11, det)
         write_outputs(x, p, memo, settings, status, r_model, vy_model, out)
         return status
 

@@ -85,7 +85,10 @@ O_NOISE_CORRELATION_VY, O_NOISE_CORRELATION_SECOND = 45, 46
 #: the directional change test's largest CUSUM over ekf.change_shift_threshold: 0, up to 1 at an alarm (change.py);
 #: the validity's "change suspected" check reads it
 O_CHANGE_EVIDENCE = 47
-N_OUTPUTS = 48
+#: rad: a heading misaligned with the vehicle beyond vehicle.heading_offset as the innovations show it (std 0: none
+#: yet), and the relative error of Cf, Cr per radian of it (heading_signature.py)
+O_HEADING_ESTIMATE, O_HEADING_ESTIMATE_STD, O_HEADING_SENS_F, O_HEADING_SENS_R = 48, 49, 50, 51
+N_OUTPUTS = 52
 
 # memo vector
 M_T_PREV, M_INITIALISED, M_GATED, M_CUSUM, M_ADAPT_UNTIL, M_DIVERGED = 0, 1, 2, 3, 4, 5
@@ -126,7 +129,11 @@ M_CORRELATION_POWER = M_CORRELATION_LAG + 2
 M_CORRELATION_SPAN = M_CORRELATION_POWER + 2
 M_CORRELATION_LAST = M_CORRELATION_SPAN + 1
 M_CORRELATION_LAST_T = M_CORRELATION_LAST + 2
-N_MEMO = M_CORRELATION_LAST_T + 1
+#: memo[M_HEADING_BIAS + i]: the bias of state i per radian of heading misalignment (heading_signature.py), then
+#: the online measure of that misalignment (adaptation.score_signature): score and information
+M_HEADING_BIAS = M_CORRELATION_LAST_T + 1
+M_HEADING_SCORE, M_HEADING_INFORMATION = M_HEADING_BIAS + MAX_STATES, M_HEADING_BIAS + MAX_STATES + 1
+N_MEMO = M_HEADING_INFORMATION + 1
 
 # the open-loop model's state: the filter's motion states and slip lags, [vy, r, psi, d_f, d_r] or [vy, r, d_f, d_r]
 N_MODEL = N_MOTION_HEADING + N_LAG

@@ -46,6 +46,7 @@ def convergence_report(node: str, estimate: Estimate | None, updates: int, limit
               ("relaxation_sensitivity_per_cm", "{:+.4f} {:+.4f}".format(*(0.01 * v for v in estimate.relaxation_sensitivity))),
               ("steering_gain_estimate_percent", "{:+.2f} {:.2f}".format(*(100 * v for v in estimate.steering_gain_estimate))),
               ("scale_sensitivity_per_percent", "{:+.4f} {:+.4f}".format(*(0.01 * v for v in estimate.scale_sensitivity))),
+              ("heading_misalignment_deg", "{:+.2f} {:.2f}".format(*map(math.degrees, estimate.heading_misalignment))),
               ("change_evidence", f"{estimate.change_evidence:.2f}"))
     if converged:
         return HealthReport(name, OK, f"converged: Cf {cf:.0f} +- {100 * rel_f:.1f} %, "
@@ -57,13 +58,15 @@ def convergence_report(node: str, estimate: Estimate | None, updates: int, limit
 
 
 def model_errors_line(estimate: Estimate, relaxation_length: float) -> str:
-    """What the innovations show of the GNSS delay, the tire relaxation and the steering gain left out (replay)."""
+    """What the innovations show of the GNSS delay, the tire relaxation, the steering gain and the heading left out (replay)."""
     delay, delay_std = estimate.delay_estimate
     lag, lag_std = estimate.relaxation_estimate
     gain, gain_std = estimate.steering_gain_estimate
+    heading, heading_std = estimate.heading_misalignment
     if not (delay_std > 0.0 or lag_std > 0.0):
         return "Model errors the innovations show: not measured (too few updates)"
     return (f"Model errors the innovations show (final): GNSS delay not in gnss.delay {1e3 * delay:+.1f} +- "
             f"{1e3 * delay_std:.1f} ms; tire relaxation beyond vehicle.relaxation_length ({relaxation_length:g} m) "
             f"{lag:+.3f} +- {lag_std:.3f} m; steering gain off vehicle.steering_scale (or Iz off vehicle.iz) "
-            f"{100 * gain:+.2f} +- {100 * gain_std:.2f} %")
+            f"{100 * gain:+.2f} +- {100 * gain_std:.2f} %; heading off the vehicle beyond vehicle.heading_offset "
+            f"{math.degrees(heading):+.2f} +- {math.degrees(heading_std):.2f} deg")

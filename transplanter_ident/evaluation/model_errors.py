@@ -3,7 +3,8 @@
 The kernel fits its innovations to the signature of each error (``ekf.adaptation.score_signature``;
 DESIGN.md section 7): a GNSS delay left out of ``gnss.delay``, a tire relaxation length left out of
 ``vehicle.relaxation_length`` (``ekf.relaxation_signature``), and a steering gain left out of
-``vehicle.steering_scale``, which a yaw inertia off in ``vehicle.iz`` resembles. Each measure is a
+``vehicle.steering_scale``, which a yaw inertia off in ``vehicle.iz`` resembles, and a heading
+misaligned with the vehicle beyond ``vehicle.heading_offset`` (``ekf.heading_signature``). Each measure is a
 value, its std, and the relative error of Cf and Cr per unit of it (the output columns of
 :data:`MODEL_ERRORS`). An estimate is not valid when a measure is ``validity.max_<name>_sigmas`` std
 from zero, or when its lower 1-sigma bound moves Cf or Cr more than ``validity.max_<name>_shift`` of
@@ -14,6 +15,7 @@ monitor (floats) and the batch decision (arrays), so both decide alike.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -25,6 +27,10 @@ from transplanter_ident.ekf.layout import (
     O_DELAY_ESTIMATE_STD,
     O_DELAY_SENS_F,
     O_DELAY_SENS_R,
+    O_HEADING_ESTIMATE,
+    O_HEADING_ESTIMATE_STD,
+    O_HEADING_SENS_F,
+    O_HEADING_SENS_R,
     O_RELAXATION,
     O_RELAXATION_SENS_F,
     O_RELAXATION_SENS_R,
@@ -103,7 +109,24 @@ MODEL_ERRORS = (
                lambda v, s: f"a steering gain {100 * v:+.1f} +- {100 * s:.1f} % off vehicle.steering_scale, or a yaw "
                             "inertia off vehicle.iz (the two look alike)",
                "check vehicle.steering_scale and vehicle.iz, or tuner --estimate-steering-scale --estimate-yaw-inertia"),
+    ModelError("heading", (O_HEADING_ESTIMATE, O_HEADING_ESTIMATE_STD, O_HEADING_SENS_F, O_HEADING_SENS_R), False,
+               lambda v, s: f"a heading {math.degrees(v):+.2f} +- {math.degrees(s):.2f} deg off the vehicle's axis "
+                            "beyond vehicle.heading_offset (a steady lateral velocity in proportion to the speed)",
+               "add it to vehicle.heading_offset (the antenna baseline's yaw from the vehicle x axis)"),
 )
+
+
+#: the heading measure's std from zero beyond which the noise check's reason names it (a misaligned heading
+#: leaves a steady vy that the noise measure takes for noise)
+HEADING_NOISE_SIGMAS = 3.0
+
+
+def misalignment_note(measures: tuple[Measure, ...]) -> str:
+    """What the noise check's reason adds when the heading measure is HEADING_NOISE_SIGMAS std from zero."""
+    for error, (value, std, *_) in zip(MODEL_ERRORS, measures, strict=False):
+        if error.name == "heading" and std > 0.0 and abs(value) > HEADING_NOISE_SIGMAS * std:
+            return f"; or {error.describe(value, std)}: {error.advice}"
+    return ""
 
 
 def measures_of(row: np.ndarray) -> tuple[Measure, ...]:

@@ -62,7 +62,7 @@ from transplanter_ident.ekf.layout import (
     StepStatus,
 )
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
-from transplanter_ident.evaluation.model_errors import MODEL_ERRORS, Measure, measures_of
+from transplanter_ident.evaluation.model_errors import MODEL_ERRORS, Measure, measures_of, misalignment_note
 from transplanter_ident.evaluation.validity_batch import (
     MIN_DRIFT_UPDATES,
     PREDICTED,
@@ -194,7 +194,8 @@ class ValidityMonitor:
             reasons.append("GNSS noisier than ekf.measurement_noise: the innovations show {:.2f} x its variance "
                            "(velocity), {:.2f} x (heading), beyond validity.max_noise_factor {:g}; set "
                            "ekf.measurement_noise, or tune it".format(*sample.noise_factors,
-                                                                      self.settings.max_noise_factor))
+                                                                      self.settings.max_noise_factor)
+                           + misalignment_note(sample.measures))
         if sample.change_evidence > self.settings.max_change_evidence:  # as validity_batch
             reasons.append(f"a stiffness change suspected: the directional change test stands at "
                            f"{100 * sample.change_evidence:.0f} % of its alarm level (the estimate may lag a new surface)")

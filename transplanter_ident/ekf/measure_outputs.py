@@ -1,0 +1,60 @@
+"""The step's measures of what the configuration left out, as output columns (DESIGN.md section 7).
+
+Every epoch, from what the step remembers (memo): the model errors the innovations show
+(:func:`.adaptation.signature_estimate`: a GNSS delay, the tires' saturation, a relaxation length, a
+steering gain, a heading misalignment), the factors on R and the innovations' correlation in time,
+and the directional change test's evidence. The stiffness's own sensitivities to each error are
+written with Cf and Cr (kernels.write_outputs).
+"""
+
+from __future__ import annotations
+
+from transplanter_ident.ekf.adaptation import noise_scale, signature_estimate
+from transplanter_ident.ekf.change import write_change_evidence
+from transplanter_ident.ekf.layout import (
+    M_DELAY_INFORMATION,
+    M_DELAY_SCORE,
+    M_HEADING_INFORMATION,
+    M_HEADING_SCORE,
+    M_NOISE_SECOND,
+    M_NOISE_SPAN_SECOND,
+    M_NOISE_SPAN_VY,
+    M_NOISE_VY,
+    M_RELAXATION_INFORMATION,
+    M_RELAXATION_SCORE,
+    M_SATURATION_INFORMATION,
+    M_SATURATION_SCORE,
+    M_SCALE_INFORMATION,
+    M_SCALE_SCORE,
+    O_DELAY_ESTIMATE,
+    O_DELAY_ESTIMATE_STD,
+    O_HEADING_ESTIMATE,
+    O_HEADING_ESTIMATE_STD,
+    O_NOISE_CORRELATION_SECOND,
+    O_NOISE_CORRELATION_VY,
+    O_NOISE_SCALE_SECOND,
+    O_NOISE_SCALE_VY,
+    O_RELAXATION,
+    O_RELAXATION_STD,
+    O_SATURATION,
+    O_SATURATION_STD,
+    O_SCALE_ESTIMATE,
+    O_SCALE_ESTIMATE_STD,
+)
+from transplanter_ident.ekf.noise_correlation import correlations
+from transplanter_ident.jit import inline_kernel
+
+
+@inline_kernel
+def write_measures(memo, settings, out):
+    """The measures' output columns (layout.O_*) from memo: each a value and its std (0: not measured yet)."""
+    out[O_DELAY_ESTIMATE], out[O_DELAY_ESTIMATE_STD] = signature_estimate(memo, M_DELAY_SCORE, M_DELAY_INFORMATION)
+    out[O_SATURATION], out[O_SATURATION_STD] = signature_estimate(memo, M_SATURATION_SCORE, M_SATURATION_INFORMATION)
+    out[O_RELAXATION], out[O_RELAXATION_STD] = signature_estimate(memo, M_RELAXATION_SCORE, M_RELAXATION_INFORMATION)
+    out[O_SCALE_ESTIMATE], out[O_SCALE_ESTIMATE_STD] = signature_estimate(memo, M_SCALE_SCORE, M_SCALE_INFORMATION)
+    out[O_HEADING_ESTIMATE], out[O_HEADING_ESTIMATE_STD] = signature_estimate(memo, M_HEADING_SCORE,
+                                                                              M_HEADING_INFORMATION)
+    out[O_NOISE_SCALE_VY] = noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY)
+    out[O_NOISE_SCALE_SECOND] = noise_scale(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND)
+    out[O_NOISE_CORRELATION_VY], out[O_NOISE_CORRELATION_SECOND] = correlations(memo, settings)
+    write_change_evidence(memo, settings, out)
