@@ -47,6 +47,7 @@ from transplanter_ident.tuning.delay import (
     with_delay,
 )
 from transplanter_ident.tuning.factor_search import FactorEstimate
+from transplanter_ident.tuning.heading_offset import estimate_heading_offset, with_heading_offset
 from transplanter_ident.tuning.parallel import Backend
 from transplanter_ident.tuning.relaxation import estimate_relaxation_length, with_relaxation_length
 from transplanter_ident.tuning.scale_and_inertia import (
@@ -188,6 +189,20 @@ def estimate_bag_steering_scale(decoded: Sequence[Any], params: EstimatorParams,
     chosen = with_steering_scale(params, estimate.value)
     return estimate, inertia, chosen, [store_bag_epochs(item.bag, chosen, scaled_epochs(e, estimate.factor), item.truth,
                                                         cache) for item, e in zip(decoded, epochs, strict=True)]
+
+
+def calibrate_heading(epochs_at: Callable[[EstimatorParams], Sequence[Any]], params: EstimatorParams,
+                      backend: Backend, estimated: dict[str, tuple[float, str]]) -> EstimatorParams:
+    """``--estimate-heading-offset``, ahead of the rest (it shapes the epochs): the parameters with the offset found.
+
+    ``epochs_at``: the bags' epochs decoded at given parameters. Adds ``vehicle.heading_offset`` to ``estimated``.
+    """
+    estimate = estimate_heading_offset(epochs_at, params, backend.map)
+    print(f"tuner: {estimate.format()}", file=sys.stderr, flush=True)
+    if not estimate.bags:
+        return params
+    estimated["vehicle.heading_offset"] = (estimate.value, estimate.format())
+    return with_heading_offset(params, estimate.value)
 
 
 def calibrate_vehicle(decoded: Sequence[Any], params: EstimatorParams, backend: Backend,

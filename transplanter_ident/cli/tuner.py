@@ -3,10 +3,13 @@
 ``tuner BAG [BAG ...] -o OUT.yaml [--params-file P.yaml ...] [--algorithm ipso|pso|cmaes] [--objective mae|nll]
 [--particles N] [--iterations N] [--seed N] [--report DIR] [--jobs N] [--dask ADDRESS] [--epoch-cache DIR |
 --no-epoch-cache] [--estimate-delay [--delay-range LOW HIGH]] [--estimate-steering-scale] [--estimate-yaw-inertia]
-[--estimate-relaxation-length] [--tune-stiffness-noise] [--q-span DECADES] [--no-leave-one-out] [--debug]``
+[--estimate-relaxation-length] [--estimate-heading-offset] [--tune-stiffness-noise] [--q-span DECADES]
+[--no-leave-one-out] [--debug]``
 
 1. reads each bag's epochs with the layered parameters, decoding a bag only if the epoch cache
-   (:mod:`transplanter_ident.bags.cache`) does not hold it yet; with ``--estimate-delay``, decodes each
+   (:mod:`transplanter_ident.bags.cache`) does not hold it yet; with ``--estimate-heading-offset``, first
+   finds ``vehicle.heading_offset`` from the filter's measure (:mod:`transplanter_ident.tuning.heading_offset`,
+   the bags decoded again at each pass); with ``--estimate-delay``, decodes each
    bag once and first searches ``gnss.delay`` over -0.2-0.3 s on the same objective at the starting Q/R,
    then ``vehicle.steering_scale``, ``vehicle.iz`` and ``vehicle.relaxation_length`` if asked
    (:mod:`transplanter_ident.cli.delay_search`), and uses the epochs at the estimates;
@@ -148,6 +151,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "ekf.steering_scale_uncertainty) into OUT.yaml")
     parser.add_argument("--estimate-yaw-inertia", action="store_true", help="then search vehicle.iz (0.6-1.6 x the "
                         "configured, m lf lr if 0) likewise; writes it (with nll, its std as ekf.yaw_inertia_uncertainty)")
+    parser.add_argument("--estimate-heading-offset", action="store_true", help="first find vehicle.heading_offset "
+                        "(a dual-antenna baseline's yaw) from the filter's measure of a misaligned heading, pooled over "
+                        "the bags; writes it into OUT.yaml, and everything after runs at it")
     parser.add_argument("--estimate-relaxation-length", action="store_true", help="then find "
                         "vehicle.relaxation_length from the filter's own measure of the tire force's lag, pooled "
                         "over the bags; writes it into OUT.yaml (Q/R are tuned with it)")
@@ -272,6 +278,11 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
     if args.report:
         check_report_path(args.report)
     estimated: dict[str, tuple[float, str]] = {}  # calibration key -> (value, the search's line)
+    if args.estimate_heading_offset:  # ahead of all: the offset shapes the epochs
+        from transplanter_ident.cli.delay_search import calibrate_heading
+
+        params = calibrate_heading(lambda at: [item.epochs for item in load_bags(
+            args.bags, at, local, cache_dir(args), allow_partial=args.allow_partial)], params, local, estimated)
     if args.estimate_delay:  # gnss.delay first (issue #13 item 4), then Q/R on the epochs at that delay
         from transplanter_ident.cli.delay_search import checked_delay_range, estimate_bag_delay
 

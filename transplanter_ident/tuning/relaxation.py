@@ -16,17 +16,14 @@ last pass. On three 2-minute identification drives of 0.3 m tires it gives 0.30 
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
-import numpy as np
-
 from transplanter_ident.config.parameters import EstimatorConfig
-from transplanter_ident.ekf.joint_ekf import run_sequence
 from transplanter_ident.ekf.layout import O_RELAXATION, O_RELAXATION_STD
 from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.tuning.factor_search import TaskMap
+from transplanter_ident.tuning.measures import final_measure, pooled
 
 #: passes of the fixed point at most, and the step (in its std) below which it stops
 MAX_PASSES = 4
@@ -57,20 +54,7 @@ def with_relaxation_length(config: EstimatorConfig, length: float) -> EstimatorC
 
 def measured_beyond(epochs: EpochArrays, config: EstimatorConfig) -> tuple[float, float]:
     """(m, std m) of the length one bag's innovations show beyond the configured one at its end (std 0: none)."""
-    if len(epochs) == 0:
-        return 0.0, 0.0
-    last = run_sequence(config, epochs)[-1]
-    value, std = float(last[O_RELAXATION]), float(last[O_RELAXATION_STD])
-    return (value, std) if math.isfinite(value) and math.isfinite(std) and std > 0.0 else (0.0, 0.0)
-
-
-def pooled(measures: Sequence[tuple[float, float]]) -> tuple[float, float, int]:
-    """(mean, std, bags) of the bags' measures weighted by 1 / std^2; (0, inf, 0) when none measured."""
-    kept = np.array([(v, s) for v, s in measures if s > 0.0])
-    if not len(kept):
-        return 0.0, math.inf, 0
-    weights = 1.0 / kept[:, 1] ** 2
-    return float(np.sum(weights * kept[:, 0]) / np.sum(weights)), float(1.0 / math.sqrt(np.sum(weights))), len(kept)
+    return final_measure(epochs, config, (O_RELAXATION, O_RELAXATION_STD))
 
 
 def estimate_relaxation_length(bags: Sequence[EpochArrays], config: EstimatorConfig,
