@@ -13,7 +13,9 @@
   ``vehicle.steering_scale`` (times ``ekf.steering_scale_uncertainty``), :func:`propagate_inertia_bias`
   per unit of ln Iz left out of ``vehicle.iz`` (times ``ekf.yaw_inertia_uncertainty``;
   :func:`held_bias_variance` sums what the std holds); :func:`score_signature` measures that delay, that gain, and how
-  far the tires saturate, from the innovations (evaluation/model_errors.py tests the measures);
+  far the tires saturate, from the innovations (evaluation/model_errors.py tests the measures; with
+  :func:`carry_bias`, :mod:`.relaxation_signature` and :mod:`.heading_signature` measure a relaxation
+  length and a misaligned heading);
   :func:`saturation_share` turns the latter into the correction of Cf, Cr and the bias the std keeps;
 * :func:`learn_noise_scales` / :func:`noise_scale`: R as the innovations show it (covariance
   matching, E[e e^T] = H P^- H^T + R), never below the configured R. Sensors noisier than R would
