@@ -263,8 +263,8 @@ def main(argv: list[str] | None = None) -> int:
           f"network namespace: {'yes' if ros_harness.unshare_works() else 'no (loopback + own domain)'}",
           flush=True)
     # fill numba's on-disk cache first (a stale cache would make the first run compile and inflate its RSS)
-    subprocess.run([sys.executable, "-c", "from transplanter_ident.ros.node import _warm_up\n"
-                    "from transplanter_ident.config.params_file import EstimatorParams\n_warm_up(EstimatorParams())"],
+    subprocess.run([sys.executable, "-c", "from transplanter_ident.ekf.joint_ekf import warm_up\n"
+                    "from transplanter_ident.config.params_file import EstimatorParams\nwarm_up(EstimatorParams().config)"],
                    check=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
     runs = []
     for i in range(args.runs):
