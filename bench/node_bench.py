@@ -264,7 +264,8 @@ def main(argv: list[str] | None = None) -> int:
           flush=True)
     # fill numba's on-disk cache first (a stale cache would make the first run compile and inflate its RSS)
     subprocess.run([sys.executable, "-c", "from transplanter_ident.ekf.joint_ekf import warm_up\n"
-                    "from transplanter_ident.config.params_file import EstimatorParams\nwarm_up(EstimatorParams().config)"],
+                    "from transplanter_ident.config.params_file import EstimatorParams\n"
+                    "warm_up(EstimatorParams().config)"],
                    check=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
     runs = []
     for i in range(args.runs):

@@ -21,7 +21,9 @@ Each epoch adds at most half its test's threshold: one outlier alone never raise
 
 Halfway to an alarm already counts (:func:`write_change_evidence`, the validity's "change suspected"):
 an estimate that lags a new surface by more than its band is not published as valid while the
-test gathers the rest. The decorrelated updates also go out (layout.O_UPDATE_F/R; 0 at an alarm and while the raised
+test gathers the rest.
+
+The decorrelated updates also go out (layout.O_UPDATE_F/R; 0 at an alarm and while the raised
 density lasts) for the validity's drift test, which sums them over a longer span: a stiffness that
 drifts, rather than steps, keeps them pushing one way by less than the directional test's shift.
 """
