@@ -60,6 +60,18 @@ def epochs_from_result(result: SimResult, vehicle: VehicleParams | None = None) 
     return epochs
 
 
+def heading_held(outputs: object, k: int) -> bool:
+    """Whether epoch k's update held the estimated heading misalignment h (kernels.py: while the filter starts).
+
+    Then vy's R and the innovations' correlation are not learnt. An update that releases h moves it, so a held
+    one is an UPDATED epoch whose h (estimated: its std > 0) did not move.
+    """
+    from transplanter_ident.ekf.layout import O_HEADING_OFFSET, O_HEADING_OFFSET_STD, O_STATUS, StepStatus
+
+    return bool(outputs[k, O_HEADING_OFFSET_STD] > 0.0 and int(outputs[k, O_STATUS]) == StepStatus.UPDATED
+                and outputs[k, O_HEADING_OFFSET] == outputs[k - 1, O_HEADING_OFFSET])
+
+
 def simulate_epochs(config: SimConfig) -> tuple[SimResult, EpochArrays]:
     """Simulate and assemble: (truth and samples, the filter's epochs)."""
     result = simulate(config)

@@ -17,6 +17,7 @@ from transplanter_ident.ekf.layout import (
     EULER,
     EXACT,
     N_MODEL,
+    N_PARAMETER_STATES,
     V_SPEED_GAIN,
     W_DE_F,
     W_DE_R,
@@ -70,7 +71,7 @@ def run_predict(arrays: FilterArrays, x: np.ndarray, dt: float, speed: float, st
     """(f(x), F, propagated open-loop model) from ekf.predict on copies."""
     x_new = x.copy()
     model = np.zeros(N_MODEL)
-    model[: len(x) - 3] = x[: len(x) - 3]
+    model[: len(x) - N_PARAMETER_STATES] = x[: len(x) - N_PARAMETER_STATES]
     ws = work_buffer()
     predict(x_new, model, arrays.vehicle, arrays.settings, dt, speed, steering, steering_rate, ws)
     n = len(x)
@@ -124,7 +125,7 @@ def analytic_jacobian(discretization: str, log_state: bool, x: np.ndarray, vx: f
                       steering: float, steering_rate: float) -> np.ndarray:
     """F built from scipy: expm and its Frechet derivative (exact) or I + M dt (Euler), chain rule for ln C."""
     n = len(x)
-    nd = n - 3  # motion states, then theta_f, theta_r and the steering offset b
+    nd = n - N_PARAMETER_STATES  # motion states, then theta_f, theta_r, the steering offset b and h
     cf, cr = (math.exp(x[nd]), math.exp(x[nd + 1])) if log_state else (x[nd], x[nd + 1])
     wheel = steering - x[nd + 2]
     m, dm_f, dm_r = augmented(cf, cr, vx, nd == 3)
@@ -166,19 +167,19 @@ def test_prediction_jacobian_matches_central_differences(discretization, stiffne
         if measurement == "heading":
             motion.append(rng.uniform(-math.pi, math.pi))
         theta = [math.log(cf), math.log(cr)] if log_state else [cf, cr]
-        x = np.array(motion + theta + [rng.uniform(-0.03, 0.03)])
-        n = len(x)
+        x = np.array(motion + theta + [rng.uniform(-0.03, 0.03), rng.uniform(-0.05, 0.05)])  # b, h
+        n, nd = len(x), len(x) - N_PARAMETER_STATES
         where = f"{discretization}/{stiffness}/{measurement} Cf={cf:.0f} Cr={cr:.0f} vx={vx:.2f} dt={dt:.3f}"
         f0, jac, model = run_predict(arrays, x, dt, vx, steering, steering_rate)
         assert np.all(np.isfinite(f0)) and np.all(np.isfinite(jac))
         # the open-loop model goes through the same transition
-        np.testing.assert_array_equal(model[: n - 3], f0[: n - 3])
-        # the stiffness and the offset are random walks
-        np.testing.assert_array_equal(f0[n - 3:], x[n - 3:])
+        np.testing.assert_array_equal(model[:nd], f0[:nd])
+        # the stiffness, the offset and h are random walks
+        np.testing.assert_array_equal(f0[nd:], x[nd:])
         for j in range(n):
-            if j == n - 1:
+            if j >= n - 2:  # b, h
                 step = 1e-6
-            elif j >= n - 3:
+            elif j >= nd:
                 step = 1e-6 if log_state else 1e-6 * abs(x[j])
             else:
                 step = 1e-6 * max(abs(x[j]), 1.0)
@@ -200,9 +201,10 @@ def test_prediction_jacobian_matches_central_differences(discretization, stiffne
 def test_jacobian_stiffness_columns_are_not_trivial():
     """Guard against a vacuous finite-difference test: the stiffness columns carry real sensitivity."""
     arrays = settings_for("exact", "log", "heading")
-    x = np.array([0.05, 0.1, 0.3, math.log(8000.0), math.log(10000.0), 0.01])
+    x = np.array([0.05, 0.1, 0.3, math.log(8000.0), math.log(10000.0), 0.01, 0.02])
     _, jac, _ = run_predict(arrays, x, 0.2, 2.0, 0.2, 0.3)
-    assert np.all(np.abs(jac[:3, 3:]) > 1e-4)
+    assert np.all(np.abs(jac[:3, 3:6]) > 1e-4)  # theta_f, theta_r, b
+    assert np.all(jac[:3, 6] == 0.0)  # h is in the vy measurement only
 
 
 # --------------------------------------------------------------------------- exact discretisation
@@ -255,7 +257,7 @@ def test_speed_derivative_is_the_central_difference_of_the_discretisation(method
 def test_prediction_carries_its_speed_derivative(discretization: str, stiffness: str, measurement: str) -> None:
     """The prediction's d x_{k+1} / d vx (ws[W_VEC, V_SPEED_GAIN]) is the central difference of its x_{k+1}, to 1e-6."""
     arrays = settings_for(discretization, stiffness, measurement)
-    nd = len(arrays.initial_state) - 3
+    nd = len(arrays.initial_state) - N_PARAMETER_STATES
     x = arrays.initial_state.copy()
     x[:2] = (0.05, 0.3)
     speed, h = 1.7, 1e-5
@@ -356,7 +358,7 @@ def test_exact_prediction_follows_a_steering_ramp(measurement):
 
         reference = solve_ivp(rhs, (0.0, dt), motion0, method="DOP853", rtol=1e-13, atol=1e-15).y[:, -1]
         nd = 3 if measurement == "heading" else 2
-        x = np.concatenate([motion0[:nd], [cf, cr, 0.0]])
+        x = np.concatenate([motion0[:nd], [cf, cr, 0.0, 0.0]])
         mean = start + 0.5 * slope * dt  # what the assembler's interval_line reports for a ramp
         got, _, _ = run_predict(arrays, x, dt, vx, mean, slope)
         scale = np.max(np.abs(reference[:nd]))

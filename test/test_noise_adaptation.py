@@ -17,6 +17,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from drives import median_and_worst, pooled_coverage, run_drive, sine_drive
+from helpers import heading_held
 from test_noise_correlation import unwidened_s
 from test_validity import epochs_of
 
@@ -92,7 +93,8 @@ def test_the_kernel_learns_as_a_plain_loop_over_its_outputs(widened: bool) -> No
 
     Per epoch the filter passed (UPDATED or NONLINEAR): prior = S_ii - R_i f_i (f: the factor in use, the
     previous epoch's), sample (e_i^2 - prior) / R_i of weight (R_i f_i / S_ii)^2 dt, a weighted mean over the
-    first ekf.noise_memory s, then exponential; the factor is that mean clipped to [1, max_noise_scale].
+    first ekf.noise_memory s, then exponential; the factor is that mean clipped to [1, max_noise_scale]. vy's
+    waits while the filter holds the heading misalignment h (helpers.heading_held).
     ``widened`` (ekf.noise_correlation): S is the one with R unwidened, rebuilt from the published S
     (test_noise_correlation.unwidened_s). One pass (``ekf.relinearization_window: 0``): a re-linearised
     pass goes on from what it learned over epochs whose outputs were published by the pass before it.
@@ -113,8 +115,10 @@ def test_the_kernel_learns_as_a_plain_loop_over_its_outputs(widened: bool) -> No
             e = out[k, [O_E0, O_E1]]
             prior = s - noise
             weight = (noise / s) ** 2 * out[k, O_DT]
+            if heading_held(out, k):  # vy's R waits while h is held
+                weight[0] = 0.0
             span = np.minimum(span + weight, options.noise_memory)
-            mean += weight / span * ((e * e - prior) / r - mean)
+            mean += np.where(span > 0.0, weight / np.where(span > 0.0, span, 1.0), 0.0) * ((e * e - prior) / r - mean)
             checked += 1
         expected = np.where(span > 0.0, np.clip(mean, 1.0, options.max_noise_scale), 1.0)
         np.testing.assert_allclose(out[k, [O_NOISE_SCALE_VY, O_NOISE_SCALE_SECOND]], expected, rtol=1e-9)

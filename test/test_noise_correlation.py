@@ -23,6 +23,7 @@ import math
 import numpy as np
 import pytest
 from drives import Run, judged_figures, run_drive, sine_drive
+from helpers import heading_held
 from test_validity import epochs_of
 
 from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, ValiditySettings
@@ -91,7 +92,8 @@ def unwidened_s(config: EstimatorConfig, speed: float, before: np.ndarray, row: 
 def slow_correlations(config: EstimatorConfig, epochs: EpochArrays, outputs: np.ndarray) -> np.ndarray:
     """The rho of (vy, second) after each epoch, as noise_correlation.py defines it, by a plain loop.
 
-    Each innovation is normalised by S with R unwidened (:func:`unwidened_s`).
+    Each innovation is normalised by S with R unwidened (:func:`unwidened_s`); none while the filter holds
+    the heading misalignment h (helpers.heading_held).
     """
     t, speed = np.asarray(epochs.t), np.asarray(epochs.speed)
     memory = config.options.noise_memory
@@ -99,7 +101,7 @@ def slow_correlations(config: EstimatorConfig, epochs: EpochArrays, outputs: np.
     rho = np.zeros((len(t), 2))
     for k in range(1, len(t)):
         status = StepStatus(int(outputs[k, O_STATUS]))
-        if status in (StepStatus.UPDATED, StepStatus.NONLINEAR):
+        if status in (StepStatus.UPDATED, StepStatus.NONLINEAR) and not heading_held(outputs, k):
             dt = outputs[k, O_DT]
             w = outputs[k, [O_E0, O_E1]] / np.sqrt(unwidened_s(config, speed[k], outputs[k - 1], outputs[k]))
             if t[k] - dt - 1.0e-6 <= last_t < t[k]:

@@ -149,3 +149,25 @@ def test_no_import_cycles_between_modules_or_subpackages() -> None:
 
     assert find_cycle(graph) == [], "module import cycle"
     assert find_cycle(packages) == [], "subpackage import cycle"
+
+
+def test_the_filter_memo_slots_never_overlap() -> None:
+    """Every memo slot of ekf/layout.py belongs to one name; the per-state blocks hold MAX_STATES slots.
+
+    A block sized for fewer states than the largest filter (a state added to the layout) overwrote its
+    neighbour in the lagged filter only: the std went NaN there (session 27, before this test).
+    """
+    from transplanter_ident.ekf import layout
+
+    blocks = {"M_BIAS", "M_DELAY_BIAS", "M_SCALE_BIAS", "M_SPEED_CROSS", "M_INERTIA_BIAS", "M_RELAXATION_BIAS",
+              "M_HEADING_BIAS"}
+    widths = {"M_SHIFT": layout.N_SHIFT, "M_SHIFT_POWER": 2, "M_SHIFT_LAG": 2, "M_SHIFT_LAST": 2,
+              "M_CORRELATION_LAG": 2, "M_CORRELATION_POWER": 2, "M_CORRELATION_LAST": 2}
+    owner: dict[int, str] = {}
+    for name in (n for n in dir(layout) if n.startswith("M_")):
+        start = getattr(layout, name)
+        width = layout.MAX_STATES if name in blocks else widths.get(name, 1)
+        for slot in range(start, start + width):
+            assert slot not in owner, f"memo slot {slot}: {owner.get(slot)} and {name}"
+            owner[slot] = name
+    assert sorted(owner) == list(range(layout.N_MEMO))

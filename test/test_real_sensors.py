@@ -198,7 +198,9 @@ def test_the_saturation_term_widens_the_std_and_leaves_the_estimate() -> None:
     with_term, without = run_drive(result, EstimatorConfig(options=unmeasured)), run_drive(result, off)
     np.testing.assert_array_equal(with_term.cf, without.cf)
     np.testing.assert_array_equal(with_term.cr, without.cr)
-    assert np.all(with_term.outputs[:, O_CF_STD] >= without.outputs[:, O_CF_STD])
+    # (to 1e-4: in the first seconds the identifiability guard's raise along a weak direction, which reads the
+    # std and P's correlation, can give back a few 1e-5 of it)
+    assert np.all(with_term.outputs[:, O_CF_STD] >= (1.0 - 1.0e-4) * without.outputs[:, O_CF_STD])
     runs = wet_runs(measured=False)
     for k in (0, 1):
         measured = -np.mean([r.final_errors()[k] for r in runs])

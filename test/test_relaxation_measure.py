@@ -28,6 +28,7 @@ from transplanter_ident.ekf.layout import (
     N_MEMO,
     N_MOTION_HEADING,
     N_MOTION_YAW_RATE,
+    N_PARAMETER_STATES,
     O_RELAXATION,
     O_RELAXATION_SENS_F,
     O_RELAXATION_STD,
@@ -73,7 +74,7 @@ def test_the_missed_motion_is_the_models_response_to_the_slip_deficits(heading: 
     """
     rng = np.random.default_rng(3)
     nd = N_MOTION_HEADING if heading else N_MOTION_YAW_RATE
-    n = nd + 3
+    n = nd + N_PARAMETER_STATES
     for _ in range(12):
         cf, cr = rng.uniform(2000.0, 30000.0, 2)
         vx, dt = rng.uniform(0.5, 3.5), rng.choice([0.05, 0.2, 0.5])
@@ -85,7 +86,7 @@ def test_the_missed_motion_is_the_models_response_to_the_slip_deficits(heading: 
         discretize(cf, cr, 1.0, 1.0, vx, dt, vehicle_array(vehicle), heading, EXACT, False, ws)
         ws[W_F, :nd, :nd] = ws[W_E, :nd, :nd]
         ws[W_F, :nd, nd + 2] = -ws[W_E, :nd, nd]  # d x / d offset (prediction.predict_n)
-        propagate_relaxation_bias(np.zeros(N_MEMO), n, nd, nd + 2, X_PSI if heading else X_R, 0.0, False, vx,
+        propagate_relaxation_bias(np.zeros(N_MEMO), n, nd, nd + 2, X_PSI if heading else X_R, False, vx,
                                   deficits[0], deficits[1], ws)
         want = slow_missed_motion(vehicle, cf, cr, vx, dt, start, delta, rate, deficits, heading)
         assert np.max(np.abs(ws[W_BIAS, B_DIRECT, :nd] - want)) <= 1e-6 * np.max(np.abs(want))

@@ -168,6 +168,12 @@ SCHEMA: tuple[Param, ...] = (
            0.0, MAX_NOISE, read_only=False),
     _float("ekf.steering_offset_initial_variance", 1.2e-3, "rad^2", "P0 of the steering offset (2 deg 1-sigma; "
            "used from the next ~/reset)", 0.0, 1.0, read_only=False),
+    _bool("ekf.estimate_heading_offset", True, "estimate the heading's misalignment with the vehicle's x axis left "
+          "out of vehicle.heading_offset as a filter state (the vy measurement is vy + antenna_x r - vx h)"),
+    _float("ekf.heading_offset_process_noise", 1.0e-8, "rad^2/s", "Q density of the heading's misalignment",
+           0.0, MAX_NOISE, read_only=False),
+    _float("ekf.heading_offset_initial_variance", 1.2e-3, "rad^2", "P0 of the heading's misalignment (2 deg "
+           "1-sigma; used from the next ~/reset)", 0.0, 1.0, read_only=False),
     _floats("ekf.initial_stiffness", (1000.0, 1000.0), "N/rad", "initial Cf, Cr, within ekf.stiffness_bounds (used "
             "from the next ~/reset)", *STIFFNESS_RANGE, read_only=False),
     _floats("ekf.initial_covariance", (1.0e-2, 1.0e-2, 4.0, 4.0), "state units^2",

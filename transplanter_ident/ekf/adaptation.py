@@ -73,9 +73,8 @@ from transplanter_ident.ekf.layout import (
     W_F,
     W_GAIN,
     W_VEC,
-    X_R,
-    X_VY,
 )
+from transplanter_ident.ekf.measurement_row import vy_row_times
 from transplanter_ident.jit import inline_kernel
 
 
@@ -155,7 +154,7 @@ def saturation_deficit(settings, vehicle, slip, stiffness, front):
 
 
 @inline_kernel
-def propagate_bias(memo, slot, n, nd, h1, antenna_x, updated, d_f, d_r, d_b, ws):
+def propagate_bias(memo, slot, n, nd, h1, updated, d_f, d_r, d_b, ws):
     """B = E[x_true - x] to first order, in memo[slot:slot + n], when the truth moves differently.
 
     Over an interval the true motion follows the parameters shifted by (d_f, d_r, d_b) (theta_f,
@@ -164,11 +163,11 @@ def propagate_bias(memo, slot, n, nd, h1, antenna_x, updated, d_f, d_r, d_b, ws)
     """
     for i in range(nd):
         ws[W_BIAS, B_DIRECT, i] = ws[W_F, i, nd] * d_f + ws[W_F, i, nd + 1] * d_r + ws[W_F, i, nd + 2] * d_b
-    return carry_bias(memo, slot, n, nd, h1, antenna_x, updated, B_DIRECT, ws, 0.0)
+    return carry_bias(memo, slot, n, nd, h1, updated, B_DIRECT, ws, 0.0)
 
 
 @inline_kernel
-def carry_bias(memo, slot, n, nd, h1, antenna_x, updated, direct, ws, measured):
+def carry_bias(memo, slot, n, nd, h1, updated, direct, ws, measured):
     """B <- F b + g over the interval, g in ws[W_BIAS, direct] (the motion the prediction misses); then the update.
 
     ``measured``: what the model error adds to the vy measurement (heading_signature.py; 0 for the others).
@@ -182,7 +181,7 @@ def carry_bias(memo, slot, n, nd, h1, antenna_x, updated, direct, ws, measured):
             for j in range(n):
                 acc += ws[W_F, i, j] * memo[slot + j]
         ws[W_VEC, V_BIAS, i] = acc
-    hb0 = ws[W_VEC, V_BIAS, X_VY] + antenna_x * ws[W_VEC, V_BIAS, X_R] + measured
+    hb0 = vy_row_times(ws, n, ws[W_VEC, V_BIAS]) + measured  # H[0] b (measurement_row.py)
     hb1 = ws[W_VEC, V_BIAS, h1]
     for i in range(n):
         b = ws[W_VEC, V_BIAS, i]
@@ -193,7 +192,7 @@ def carry_bias(memo, slot, n, nd, h1, antenna_x, updated, direct, ws, measured):
 
 
 @inline_kernel
-def propagate_tire_bias(memo, vehicle, settings, n, nd, h1, antenna_x, updated, slip_f, slip_r, cf, cr,
+def propagate_tire_bias(memo, vehicle, settings, n, nd, h1, updated, slip_f, slip_r, cf, cr,
                         log_state, ws):
     """The estimate's first-order bias (memo M_BIAS) if the tires saturate at ``min_friction``.
 
@@ -206,22 +205,22 @@ def propagate_tire_bias(memo, vehicle, settings, n, nd, h1, antenna_x, updated, 
     d_r = saturation_deficit(settings, vehicle, slip_r, cr, False)
     if not log_state:
         d_f, d_r = cf * d_f, cr * d_r
-    return propagate_bias(memo, M_BIAS, n, nd, h1, antenna_x, updated, d_f, d_r, 0.0, ws)
+    return propagate_bias(memo, M_BIAS, n, nd, h1, updated, d_f, d_r, 0.0, ws)
 
 
 @inline_kernel
-def propagate_delay_bias(memo, n, nd, h1, antenna_x, updated, steering_rate, ws):
+def propagate_delay_bias(memo, n, nd, h1, updated, steering_rate, ws):
     """The estimate's first-order bias per second of GNSS delay not in ``gnss.delay`` (memo M_DELAY_BIAS).
 
     GNSS stamped tau late describes the motion that the steering tau earlier caused: the true wheel
     angle is the filter's minus tau times the steering rate, a steering offset of tau * rate. Returns
     H b of the prediction: the innovation per second of such a delay (:func:`score_signature`).
     """
-    return propagate_bias(memo, M_DELAY_BIAS, n, nd, h1, antenna_x, updated, 0.0, 0.0, steering_rate, ws)
+    return propagate_bias(memo, M_DELAY_BIAS, n, nd, h1, updated, 0.0, 0.0, steering_rate, ws)
 
 
 @inline_kernel
-def propagate_scale_bias(memo, n, nd, h1, antenna_x, updated, steering, ws):
+def propagate_scale_bias(memo, n, nd, h1, updated, steering, ws):
     """The estimate's first-order bias per unit of steering gain left out of the configured one (M_SCALE_BIAS).
 
     A sensor whose gain is 1 + eps times the configured one makes the true wheel angle the filter's
@@ -229,11 +228,11 @@ def propagate_scale_bias(memo, n, nd, h1, antenna_x, updated, steering, ws):
     Returns H b of the prediction: the innovation per unit of such a gain (:func:`score_signature`;
     a yaw inertia off ``vehicle.iz`` leaves a look-alike).
     """
-    return propagate_bias(memo, M_SCALE_BIAS, n, nd, h1, antenna_x, updated, 0.0, 0.0, -steering, ws)
+    return propagate_bias(memo, M_SCALE_BIAS, n, nd, h1, updated, 0.0, 0.0, -steering, ws)
 
 
 @inline_kernel
-def propagate_inertia_bias(memo, settings, n, nd, h1, antenna_x, updated, ws):
+def propagate_inertia_bias(memo, settings, n, nd, h1, updated, ws):
     """The estimate's first-order bias per unit of ln Iz left out of ``vehicle.iz`` (memo M_INERTIA_BIAS).
 
     Iz scales the yaw equation alone (paper eq. 1), which no shift of theta or the offset mimics: the
@@ -241,7 +240,7 @@ def propagate_inertia_bias(memo, settings, n, nd, h1, antenna_x, updated, ws):
     ``predict_inertia_gain`` left in ws[W_BIAS, B_INERTIA]. Only with ``ekf.yaw_inertia_uncertainty`` > 0.
     """
     if settings[S_INERTIA_UNCERTAINTY] > 0.0:
-        carry_bias(memo, M_INERTIA_BIAS, n, nd, h1, antenna_x, updated, B_INERTIA, ws, 0.0)
+        carry_bias(memo, M_INERTIA_BIAS, n, nd, h1, updated, B_INERTIA, ws, 0.0)
 
 
 @inline_kernel
@@ -293,7 +292,7 @@ def _learn_ratio(memo, settings, slot, span_slot, dt, innovation, prior, noise, 
 
 
 @inline_kernel
-def learn_noise_scales(memo, settings, dt, e0, e1, prior0, prior1, noise0, noise1, r0, r1):
+def learn_noise_scales(memo, settings, dt, e0, e1, prior0, prior1, noise0, noise1, r0, r1, velocity):
     """Covariance matching: (e_i^2 - prior_i) / R_i has the mean R_true,i / R_i.
 
     e0, e1: the innovations; prior0, prior1: what S holds besides this measurement's own noise (H P^- H^T,
@@ -305,7 +304,8 @@ def learn_noise_scales(memo, settings, dt, e0, e1, prior0, prior1, noise0, noise
     """
     if settings[S_NOISE_ADAPTATION] < 0.5:
         return
-    _learn_ratio(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY, dt, e0, prior0, noise0, r0)
+    if velocity:  # (kernels.py: not while a misaligned heading may still hide in vy)
+        _learn_ratio(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY, dt, e0, prior0, noise0, r0)
     _learn_ratio(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND, dt, e1, prior1, noise1, r1)
 
 

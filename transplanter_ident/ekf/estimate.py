@@ -22,6 +22,8 @@ from transplanter_ident.ekf.layout import (
     O_E1,
     O_HEADING_ESTIMATE,
     O_HEADING_ESTIMATE_STD,
+    O_HEADING_OFFSET,
+    O_HEADING_OFFSET_STD,
     O_NIS,
     O_NOISE_CORRELATION_SECOND,
     O_NOISE_CORRELATION_VY,
@@ -124,8 +126,12 @@ class Estimate:
 
     @property
     def heading_misalignment(self) -> tuple[float, float]:
-        """(rad, std rad) of a heading misaligned with the vehicle beyond vehicle.heading_offset (std 0: not yet)."""
-        return self._pair(O_HEADING_ESTIMATE, O_HEADING_ESTIMATE_STD, 0.0)
+        """(rad, std rad) of a heading misaligned with the vehicle beyond vehicle.heading_offset (std 0: not yet).
+
+        The filter's state h while ``ekf.estimate_heading_offset``, else the innovations' measure of it.
+        """
+        state = self._pair(O_HEADING_OFFSET, O_HEADING_OFFSET_STD, 0.0)
+        return state if state[1] > 0.0 else self._pair(O_HEADING_ESTIMATE, O_HEADING_ESTIMATE_STD, 0.0)
 
     @property
     def change_evidence(self) -> float:

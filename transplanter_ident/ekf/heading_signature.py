@@ -18,6 +18,8 @@ stiffness take up what they can), which gives the innovation per radian the rest
 :func:`.adaptation.score_signature` fits the innovations to it (O_HEADING_ESTIMATE, its std; memory
 ``ekf.saturation_memory``, as the other constant errors), and the stiffness's share per radian is the
 sensitivity O_HEADING_SENS_F/R. The validity tests both, as for a GNSS delay (evaluation/model_errors.py).
+The step runs it only with ``ekf.estimate_heading_offset`` false: else delta is the filter's state h
+(:mod:`.measurement_row`), and nothing is left for the measure.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from transplanter_ident.jit import inline_kernel
 
 
 @inline_kernel
-def propagate_heading_bias(memo, n, nd, h1, antenna_x, updated, speed, ws):
+def propagate_heading_bias(memo, n, nd, h1, updated, speed, ws):
     """The estimate's first-order bias per radian of heading misalignment (memo M_HEADING_BIAS).
 
     The prediction misses no motion (ws[W_BIAS, B_DIRECT] zero); the vy measurement is -speed off per
@@ -36,4 +38,4 @@ def propagate_heading_bias(memo, n, nd, h1, antenna_x, updated, speed, ws):
     """
     for i in range(nd):
         ws[W_BIAS, B_DIRECT, i] = 0.0
-    return carry_bias(memo, M_HEADING_BIAS, n, nd, h1, antenna_x, updated, B_DIRECT, ws, -speed)
+    return carry_bias(memo, M_HEADING_BIAS, n, nd, h1, updated, B_DIRECT, ws, -speed)

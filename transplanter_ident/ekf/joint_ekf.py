@@ -66,6 +66,7 @@ from transplanter_ident.ekf.layout import (
     S_NOISE_ADAPTATION,
     S_NOISE_CORRELATION,
     S_NOISE_MEMORY,
+    S_P0_HEADING_OFFSET,
     S_P0_OFFSET,
     S_P0_PSI,
     S_P0_R,
@@ -81,6 +82,7 @@ from transplanter_ident.ekf.layout import (
     S_SHIFT,
     S_SHIFT_THRESHOLD,
     S_SPEED_NOISE,
+    X_HEADING_OFFSET,
     X_OFFSET,
     X_PSI,
     X_THETA_F,
@@ -160,7 +162,8 @@ class FilterArrays:
         settings[S_SPEED_NOISE] = 1.0 if options.speed_noise else 0.0
         settings[S_DELAY_MEMORY] = options.identifiability_memory
         q, p0 = _state_diagonals(noise, options, config.vehicle.relaxation_length > 0.0)
-        settings[S_P0_THETA_F], settings[S_P0_THETA_R], settings[S_P0_OFFSET] = p0[-3:]  # recovery.py
+        settings[S_P0_THETA_F], settings[S_P0_THETA_R] = p0[X_THETA_F], p0[X_THETA_R]  # recovery.py
+        settings[S_P0_OFFSET], settings[S_P0_HEADING_OFFSET] = p0[X_OFFSET], p0[X_HEADING_OFFSET]
         x0 = np.zeros(len(q))
         x0[X_THETA_F] = to_state(noise.initial_stiffness[0])
         x0[X_THETA_R] = to_state(noise.initial_stiffness[1])
@@ -176,7 +179,7 @@ class FilterArrays:
 
 
 def _state_diagonals(noise: NoiseParams, options: FilterOptions, lagged: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Diag Q (a density, per second) and diag P0 in the state's order; a fixed offset has Q = P0 = 0.
+    """Diag Q (a density, per second) and diag P0 in the state's order; a fixed offset (b or h) has Q = P0 = 0.
 
     ``lagged`` (relaxing tires): the slip lags follow the motion states with Q = P0 = 0 (they start at
     0, a steady turn, and follow vy, r and the steering deterministically).
@@ -191,6 +194,9 @@ def _state_diagonals(noise: NoiseParams, options: FilterOptions, lagged: bool) -
     estimated = options.estimate_steering_offset
     q.append(noise.steering_offset_process_noise if estimated else 0.0)
     p0.append(noise.steering_offset_initial_variance if estimated else 0.0)
+    estimated = options.estimate_heading_offset
+    q.append(noise.heading_offset_process_noise if estimated else 0.0)
+    p0.append(noise.heading_offset_initial_variance if estimated else 0.0)
     scale = options.noise_rate_scale
     return np.array(q, dtype=np.float64) * scale, np.array(p0, dtype=np.float64)
 

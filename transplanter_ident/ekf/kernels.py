@@ -1,18 +1,23 @@
 """Joint-state EKF over the motion states, the cornering stiffness and the steering offset (paper eqs. 9-14, 21).
 
-State: [vy, r, psi, theta_f, theta_r, b] with z = [vy_antenna, psi] (``heading``, the default) or
-[vy, r, theta_f, theta_r, b] with z = [vy_antenna, r] (``yaw_rate``, the paper's eq. 11). theta is
-ln C (``log``) or C (``linear``); b is the steering-sensor offset (wheel angle = sensor - b). The
-prediction (:mod:`.prediction`) uses :func:`model.discretize` (eq. 10 or exact ZOH, Jacobian eq. 13
-with the A23 erratum fixed) driven by the steering ramp minus b. The measurement holds the lever arm,
-h(x) = [vy + antenna_x r, psi], and the update is eq. 12 in Joseph form with a Mahalanobis gate.
+State: [vy, r, psi, theta_f, theta_r, b, h] with z = [vy_antenna, psi] (``heading``, the default) or
+[vy, r, theta_f, theta_r, b, h] with z = [vy_antenna, r] (``yaw_rate``, the paper's eq. 11). theta is
+ln C (``log``) or C (``linear``); b is the steering-sensor offset (wheel angle = sensor - b); h the
+heading's misalignment with the vehicle left out of ``vehicle.heading_offset``. The prediction
+(:mod:`.prediction`) uses :func:`model.discretize` (eq. 10 or exact ZOH, Jacobian eq. 13 with the A23
+erratum fixed) driven by the steering ramp minus b. The measurement holds the lever arm and h,
+h(x) = [vy + antenna_x r - vx h, psi] (:mod:`.measurement_row`), and the update is eq. 12 in Joseph
+form with a Mahalanobis gate.
 The body-frame vy is the GNSS velocity turned by the *measured* heading, so its error holds
 -vx e_psi: R is full, [[R_v + vx^2 R_psi, -vx R_psi], [-vx R_psi, R_psi]] (R_v, R_psi as configured).
 
 Beyond the paper (DESIGN.md section 7):
 
 * Q is a spectral density: each interval adds Q dt, so one parameter file fits any GNSS rate;
-* theta and b are random walks; a surface change (change.py) raises the stiffness's for a while;
+* theta, b and h are random walks; a surface change (change.py) raises the stiffness's for a while;
+* h, a heading misaligned with the vehicle (``ekf.estimate_heading_offset``): the vy measurement is the
+  velocity turned by the measured heading, and the model runs at the vehicle's forward speed
+  (:mod:`.measurement_row`); h is held (Schmidt) while the filter starts from its priors;
 * beyond the linear tire range only the motion states are updated (a Schmidt update);
 * a measurement gated ``max_gated`` times in a row re-initialises the motion states; it never
   forces a stiffness update;
@@ -35,6 +40,7 @@ from __future__ import annotations
 import math
 
 from transplanter_ident.ekf.adaptation import (
+    DELAY_SETTLE,
     beyond_linear_range,
     forget_motion_bias,
     held_bias_variance,
@@ -55,10 +61,9 @@ from transplanter_ident.ekf.layout import (
     M_ADAPT_UNTIL,
     M_BIAS,
     M_CUSUM,
-    M_DELAY_BIAS,
+    M_DELAY_SETTLED,
     M_DIVERGED,
     M_GATED,
-    M_HEADING_BIAS,
     M_HEADING_INFORMATION,
     M_HEADING_SCORE,
     M_INITIALISED,
@@ -66,10 +71,8 @@ from transplanter_ident.ekf.layout import (
     M_LAG_SPEED,
     M_NOISE_SPAN_VY,
     M_NOISE_VY,
-    M_RELAXATION_BIAS,
     M_RELAXATION_INFORMATION,
     M_RELAXATION_SCORE,
-    M_SCALE_BIAS,
     M_SCALE_INFORMATION,
     M_SCALE_SCORE,
     M_SHIFT,
@@ -83,22 +86,20 @@ from transplanter_ident.ekf.layout import (
     O_CF,
     O_CF_STD,
     O_CORRELATION,
-    O_DELAY_SENS_F,
     O_DT,
     O_E0,
     O_E1,
-    O_HEADING_SENS_F,
+    O_HEADING_OFFSET,
+    O_HEADING_OFFSET_STD,
     O_NIS,
     O_NIS_CONFIGURED,
     O_OFFSET,
     O_OFFSET_STD,
     O_R,
     O_R_MODEL,
-    O_RELAXATION_SENS_F,
     O_S00,
     O_S01,
     O_S11,
-    O_SCALE_SENS_F,
     O_SLIP_F,
     O_SLIP_R,
     O_STATUS,
@@ -115,6 +116,7 @@ from transplanter_ident.ekf.layout import (
     S_MAX_INTERVAL,
     S_MEASURE_ERRORS,
     S_MIN_SPEED,
+    S_P0_HEADING_OFFSET,
     S_RELAXATION_UNCERTAINTY,
     S_SATURATION_MEMORY,
     S_SCALE_UNCERTAINTY,
@@ -133,7 +135,13 @@ from transplanter_ident.ekf.layout import (
     Z_VY,
     StepStatus,
 )
-from transplanter_ident.ekf.measure_outputs import write_measures
+from transplanter_ident.ekf.measure_outputs import write_measures, write_sensitivities
+from transplanter_ident.ekf.measurement_row import (
+    body_speed,
+    predict_vy,
+    vy_row_quadratic,
+    vy_row_times_column,
+)
 from transplanter_ident.ekf.noise_correlation import effective_noise, learn_noise
 from transplanter_ident.ekf.prediction import make_prediction
 from transplanter_ident.ekf.recovery import make_recovery
@@ -155,7 +163,7 @@ def _finite(value):
 def make_kernels(heading, lagged=False):
     """Compile predict/step/run/objective for one measurement mode (sizes become compile-time constants).
 
-    ``heading``: n = 6 states, z = [vy_antenna, psi]; else n = 5, z = [vy_antenna, r]. ``lagged``: the
+    ``heading``: n = 7 states, z = [vy_antenna, psi]; else n = 6, z = [vy_antenna, r]. ``lagged``: the
     tires relax (vehicle.relaxation_length > 0), and the slip lags d_f, d_r follow the motion states
     (n + N_LAG). The small loops unroll; all scratch lives in one work buffer indexed by slot (no
     per-step allocation).
@@ -163,7 +171,7 @@ def make_kernels(heading, lagged=False):
     lag = N_LAG if lagged else 0
     n = (HEADING_STATES if heading else YAW_RATE_STATES) + lag
     nd = (N_MOTION_HEADING if heading else N_MOTION_YAW_RATE) + lag  # motion states and slip lags
-    nf, nr, nb = nd, nd + 1, nd + 2  # theta_f, theta_r, steering offset
+    nf, nr, nb, nh = nd, nd + 1, nd + 2, nd + 3  # theta_f, theta_r, steering offset, heading's misalignment
     h1 = X_PSI if heading else X_R  # second measured state
     propagate_covariance, add_speed_noise, joseph_update, keep_speed_cross = make_update(n, nd, h1)
 
@@ -183,10 +191,7 @@ def make_kernels(heading, lagged=False):
             held = held_bias_variance(memo, settings, nf + k, unpinned)
             out[O_CF_STD + k] = dc * math.sqrt(max(p[nf + k, nf + k], 0.0) + held)
             out[O_TIRE_BIAS_F + k] = dc * bias / c if c != 0.0 else 0.0
-            out[O_DELAY_SENS_F + k] = -dc * memo[M_DELAY_BIAS + nf + k] / c if c != 0.0 else 0.0  # estimate - truth
-            out[O_SCALE_SENS_F + k] = -dc * memo[M_SCALE_BIAS + nf + k] / c if c != 0.0 else 0.0
-            out[O_RELAXATION_SENS_F + k] = -dc * memo[M_RELAXATION_BIAS + nf + k] / c if c != 0.0 else 0.0
-            out[O_HEADING_SENS_F + k] = -dc * memo[M_HEADING_BIAS + nf + k] / c if c != 0.0 else 0.0
+            write_sensitivities(memo, nf + k, k, c, dc, out)  # to a delay, a gain, a relaxation, a heading
         out[O_OFFSET] = x[nb]
         out[O_OFFSET_STD] = math.sqrt(max(p[nb, nb], 0.0))
         denominator = math.sqrt(max(p[nf, nf], 0.0) * max(p[nr, nr], 0.0))
@@ -194,6 +199,8 @@ def make_kernels(heading, lagged=False):
         out[O_VY_MODEL] = vy_model
         out[O_R_MODEL] = r_model
         write_measures(memo, settings, out)
+        out[O_HEADING_OFFSET] = x[nh]
+        out[O_HEADING_OFFSET_STD] = math.sqrt(max(p[nh, nh], 0.0))
 
     @called_kernel
     def restart_motion(x, p, model, memo, settings, status, t, vy_antenna, psi, yaw_rate, out):
@@ -224,14 +231,18 @@ def make_kernels(heading, lagged=False):
         1. Reject a non-finite epoch or a stamp not after the previous one (nothing changes).
         2. Initialise, or re-initialise after a gap (or a clock step back beyond max_interval), at low
            speed or reversing (motion from z).
-        3. Predict x and the open-loop model over dt (eq. 12), P = F P F^T + Q dt (+ the speed's noise, update.py).
-        4. Innovation, S and NIS with the lever arm in h(x), the heading error in vy and R as the innovations
-           show it (its variance, adaptation.noise_scale, and its correlation in time, noise_correlation.py).
+        3. Predict x and the open-loop model over dt (eq. 12) at the vehicle's forward speed, P = F P F^T + Q dt
+           (+ the speed's noise, update.py).
+        4. Innovation, S and NIS with the lever arm and h in h(x) (measurement_row.py), the heading error in vy
+           and R as the innovations show it (its variance, adaptation.noise_scale, and its correlation in time,
+           noise_correlation.py).
         5. Gate; after max_gated gated epochs in a row, re-initialise the motion states.
-        6. Joseph update (motion only outside the linear tire range); the change tests (change.py); clamp the stiffness.
+        6. Joseph update (motion only outside the linear tire range; h held until both stiffnesses are known);
+           the change tests (change.py); clamp the stiffness.
         7. Roll back if anything became non-finite; re-initialise if that lasts (:mod:`.recovery`); else
            propagate the tire's, the delay's and the steering gain's biases, keep the speed sample's covariance (update.py),
-           learn R and rho, and score the delay, the tires' saturation and (layout.S_MEASURE_ERRORS) a relaxation
+           learn R and rho (vy's not while h is held), and score the delay, the tires' saturation and
+           (layout.S_MEASURE_ERRORS) a relaxation
            length and a steering gain left out (the saturation's share corrects Cf, Cr; model_errors.py tests the rest).
         """
         out[:] = 0.0
@@ -259,6 +270,7 @@ def make_kernels(heading, lagged=False):
 
         dt = t - memo[M_T_PREV]
         out[O_DT] = dt
+        vx = body_speed(x, n, settings[S_ANTENNA_X], speed)  # the model's speed; the measurement's is speed
         for i in range(n):
             ws[W_VEC, V_BACKUP_X, i] = x[i]
             for j in range(n):
@@ -272,28 +284,32 @@ def make_kernels(heading, lagged=False):
         # the tire's range from the last motion estimate, once both stiffnesses are known (see adaptation.py)
         log_state = settings[S_LOG] > 0.5
         wheel = steering - 0.5 * dt * steering_rate  # at the interval's start, as x (the ramp of predict_n)
-        beyond = beyond_linear_range(vehicle, settings, speed, wheel, x[nb], x[X_VY], x[X_R],
+        beyond = beyond_linear_range(vehicle, settings, vx, wheel, x[nb], x[X_VY], x[X_R],
                                      stiffness(x, settings, 0)[0], stiffness(x, settings, 1)[0], out)
         known = known_to(x[nf], p[nf, nf], log_state) and known_to(x[nr], p[nr, nr], log_state)
         nonlinear = beyond and known
         if lagged and known:  # the slip lags from now on (see the module docstring)
             memo[M_LAG_ACTIVE] = 1.0
+        # an estimated h is held (Schmidt) until both stiffnesses are known (or DELAY_SETTLE s of data are in), and
+        # vy's R is not learnt meanwhile: the vy errors of a model still far off its priors are neither a misaligned
+        # heading nor noise, and a misaligned heading is not noise
+        heading_held = settings[S_P0_HEADING_OFFSET] > 0.0 and not known and memo[M_DELAY_SETTLED] < DELAY_SETTLE
 
         # 3.
         psi_model_before = model[X_PSI]
         relaxation = vehicle[VEH_RELAXATION] if lagged and memo[M_LAG_ACTIVE] > 0.5 else 0.0
         if relaxation > 0.0:
             if memo[M_LAG_SPEED] > 0.0:
-                carry_lags(x, p, model, memo[M_LAG_SPEED], speed, vehicle)
-            memo[M_LAG_SPEED] = speed
-        predict_inertia_gain(x, vehicle, settings, dt, speed, steering, steering_rate, relaxation, ws, False)
-        predict_n(x, model, vehicle, settings, dt, speed, steering, steering_rate, relaxation, ws)
-        predict_inertia_gain(x, vehicle, settings, dt, speed, steering, steering_rate, relaxation, ws, True)
+                carry_lags(x, p, model, memo[M_LAG_SPEED], vx, vehicle)
+            memo[M_LAG_SPEED] = vx
+        predict_inertia_gain(x, vehicle, settings, dt, vx, steering, steering_rate, relaxation, ws, False)
+        predict_n(x, model, vehicle, settings, dt, vx, steering, steering_rate, relaxation, ws)
+        predict_inertia_gain(x, vehicle, settings, dt, vx, steering, steering_rate, relaxation, ws, True)
         measuring = settings[S_MEASURE_ERRORS] > 0.5  # the relaxation and gain measures (off in the tuner's objective)
         relaxing = measuring or settings[S_RELAXATION_UNCERTAINTY] > 0.0
         eps_f = eps_r = 0.0
         if relaxing:
-            eps_f, eps_r = slip_deficits(ws[W_VEC, V_BACKUP_MODEL], model, vehicle, dt, speed, steering_rate, nd - lag,
+            eps_f, eps_r = slip_deficits(ws[W_VEC, V_BACKUP_MODEL], model, vehicle, dt, vx, steering_rate, nd - lag,
                                          relaxation > 0.0, relaxation)
         r_model = (model[X_PSI] - psi_model_before) / dt if heading else model[X_R]
         vy_model = model[X_VY]
@@ -302,20 +318,19 @@ def make_kernels(heading, lagged=False):
         scale_r = 1.0 if settings[S_LOG] > 0.5 else x[nr]
         propagate_covariance(p, q, dt, adapting, settings, (scale_f, scale_r), ws)
         if relaxation > 0.0:
-            add_lag_noise(p, q, dt, speed, vehicle)
+            add_lag_noise(p, q, dt, vx, vehicle)
         speed_variance = 0.0  # of one GNSS speed sample: R's velocity entry as the innovations show it
         if settings[S_SPEED_NOISE] > 0.5:  # the interval's speed: the mean of two GNSS samples
             speed_variance = r_noise[Z_VY] * noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY)
             add_speed_noise(p, speed_variance, memo, ws)
 
         # 4.
-        antenna_x = settings[S_ANTENNA_X]
-        e0 = vy_antenna - (x[X_VY] + antenna_x * x[X_R])
+        e0 = vy_antenna - predict_vy(ws, n, x, settings[S_ANTENNA_X], speed)  # ~ vy + antenna_x r - vx h, and H[0]
         e1 = wrap_angle(psi - x[X_PSI]) if heading else yaw_rate - x[X_R]
-        hph00 = p[X_VY, X_VY] + 2.0 * antenna_x * p[X_VY, X_R] + antenna_x * antenna_x * p[X_R, X_R]
+        hph00 = vy_row_quadratic(ws, n, p)
         hph11 = p[h1, h1]
         r0, r1 = effective_noise(memo, settings, r_noise[Z_VY], r_noise[Z_SECOND])  # as the innovations show it
-        hph01 = p[X_VY, h1] + antenna_x * p[X_R, h1]
+        hph01 = vy_row_times_column(ws, n, p, h1)
         s00, s01, s11 = innovation_covariance(heading, hph00, hph01, hph11, r0, r1, speed)
         nis, det = normalized_innovation_squared(e0, e1, s00, s01, s11)  # det NaN: S lost definiteness, roll back
         out[O_E0], out[O_E1] = e0, e1
@@ -340,7 +355,7 @@ def make_kernels(heading, lagged=False):
             if nonlinear:
                 status = StepStatus.NONLINEAR
             theta_f, theta_r, prior_f, prior_r = x[nf], x[nr], p[nf, nf], p[nr, nr]
-            joseph_update(x, p, e0, e1, s00, s01, s11, det, antenna_x, nonlinear, ws)
+            joseph_update(x, p, e0, e1, s00, s01, s11, det, nonlinear, heading_held, ws)
             if not nonlinear and settings[S_CHANGE_DETECTION] > 0.5:  # gated outliers never raise an alarm
                 u_f = normalised_update(theta_f, x[nf], prior_f, p[nf, nf])
                 u_r = normalised_update(theta_r, x[nr], prior_r, p[nr, nr])
@@ -354,20 +369,21 @@ def make_kernels(heading, lagged=False):
         memo[M_T_PREV] = t
         memo[M_DIVERGED] = 0.0
         cf_now, cr_now = stiffness(x, settings, 0)[0], stiffness(x, settings, 1)[0]
-        tire0, tire1 = propagate_tire_bias(memo, vehicle, settings, n, nd, h1, antenna_x, updated, out[O_SLIP_F],
+        tire0, tire1 = propagate_tire_bias(memo, vehicle, settings, n, nd, h1, updated, out[O_SLIP_F],
                                            out[O_SLIP_R], cf_now, cr_now, log_state, ws)
-        g0, g1 = propagate_delay_bias(memo, n, nd, h1, antenna_x, updated, steering_rate, ws)
+        g0, g1 = propagate_delay_bias(memo, n, nd, h1, updated, steering_rate, ws)
         gain0 = gain1 = lag0 = head0 = head1 = 0.0
-        if measuring:
-            head0, head1 = propagate_heading_bias(memo, n, nd, h1, antenna_x, updated, speed, ws)
+        if measuring and not settings[S_P0_HEADING_OFFSET] > 0.0:  # else h is a state
+            head0, head1 = propagate_heading_bias(memo, n, nd, h1, updated, speed, ws)
         if measuring or settings[S_SCALE_UNCERTAINTY] > 0.0:
-            gain0, gain1 = propagate_scale_bias(memo, n, nd, h1, antenna_x, updated, steering, ws)
-        propagate_inertia_bias(memo, settings, n, nd, h1, antenna_x, updated, ws)
+            gain0, gain1 = propagate_scale_bias(memo, n, nd, h1, updated, steering, ws)
+        propagate_inertia_bias(memo, settings, n, nd, h1, updated, ws)
         if relaxing:
-            lag0, _ = propagate_relaxation_bias(memo, n, nd, nb, h1, antenna_x, updated, speed, eps_f, eps_r, ws)
-        keep_speed_cross(memo, speed_variance, antenna_x, updated, ws)
+            lag0, _ = propagate_relaxation_bias(memo, n, nd, nb, h1, updated, vx, eps_f, eps_r, ws)
+        keep_speed_cross(memo, speed_variance, updated, ws)
         if updated:
-            learn_noise(memo, settings, heading, t, dt, speed, e0, e1, hph00, hph01, hph11, r_noise[Z_VY], r_noise[Z_SECOND])
+            learn_noise(memo, settings, heading, t, dt, speed, e0, e1, hph00, hph01, hph11, r_noise[Z_VY],
+                        r_noise[Z_SECOND], not heading_held)
             score_model_errors(memo, settings, dt, g0, g1, tire0, tire1, e0, e1, s00, s01, s11, det)
         if updated and measuring:
             score_signature(memo, M_RELAXATION_SCORE, M_RELAXATION_INFORMATION, settings[S_SATURATION_MEMORY], dt, lag0,

@@ -3,11 +3,13 @@
 The kernels of :mod:`.model` and :mod:`.kernels` work on flat float arrays; this module names
 their slots so that no kernel writes a bare number:
 
-* state x (n,): [vy, r, psi, theta_f, theta_r, b] in ``heading`` mode (z = [vy_antenna, psi]) or
-  [vy, r, theta_f, theta_r, b] in ``yaw_rate`` mode (the paper's eq. 11 plus b, z = [vy_antenna, r]);
-  theta = ln C (``log``) or C (``linear``), b the steering-sensor offset (wheel = sensor - b). With a
-  tire relaxation length (``vehicle.relaxation_length`` > 0) the slip lags of the two axles, d_f and
-  d_r (the force is C (alpha - d)), follow the motion states: [vy, r, (psi), d_f, d_r, theta_f, theta_r, b];
+* state x (n,): [vy, r, psi, theta_f, theta_r, b, h] in ``heading`` mode (z = [vy_antenna, psi]) or
+  [vy, r, theta_f, theta_r, b, h] in ``yaw_rate`` mode (the paper's eq. 11 plus b and h, z = [vy_antenna, r]);
+  theta = ln C (``log``) or C (``linear``), b the steering-sensor offset (wheel = sensor - b), h the
+  heading's misalignment left out of ``vehicle.heading_offset`` (the vy measurement is vy + antenna_x r
+  - vx h, :mod:`.update`). With a tire relaxation length (``vehicle.relaxation_length`` > 0) the slip
+  lags of the two axles, d_f and d_r (the force is C (alpha - d)), follow the motion states:
+  [vy, r, (psi), d_f, d_r, theta_f, theta_r, b, h];
 * settings (N_SETTINGS,): the filter options as numbers (``S_*``);
 * outputs (N_OUTPUTS,): one row per epoch (``O_*``);
 * memo (N_MEMO,): what the step remembers between epochs (``M_*``);
@@ -21,14 +23,17 @@ from __future__ import annotations
 
 import enum
 
-# state: the motion states first, then the two stiffness states, then the steering offset
+# state: the motion states first, then the two stiffness states, the steering offset and the heading's misalignment
 X_VY, X_R, X_PSI = 0, 1, 2
-HEADING_STATES, YAW_RATE_STATES = 6, 5  # [vy, r, psi, th_f, th_r, b] and [vy, r, th_f, th_r, b]
+HEADING_STATES, YAW_RATE_STATES = 7, 6  # [vy, r, psi, th_f, th_r, b, h] and [vy, r, th_f, th_r, b, h]
 N_MOTION_HEADING, N_MOTION_YAW_RATE = 3, 2
 N_LAG = 2  # the slip lags [d_f, d_r] of a relaxing tire (model.continuous_matrix), after the motion states
 HEADING_LAG_STATES, YAW_RATE_LAG_STATES = HEADING_STATES + N_LAG, YAW_RATE_STATES + N_LAG
 MAX_STATES = HEADING_LAG_STATES
-X_THETA_F, X_THETA_R, X_OFFSET = -3, -2, -1  # the parameter states, counted from the end
+X_THETA_F, X_THETA_R, X_OFFSET, X_HEADING_OFFSET = -4, -3, -2, -1  # the parameter states, counted from the end
+N_PARAMETER_STATES = 4  # [theta_f, theta_r, b, h], after the motion states and slip lags
+#: the parameter states a learned state keeps (persistence.py) and a new pass starts from (relinearization.py);
+#: the heading's misalignment is learnt anew in a minute (ekf.estimate_heading_offset)
 PARAMETER_STATES = [X_THETA_F, X_THETA_R, X_OFFSET]
 
 # measurement z = [vy at the antenna, psi] (heading) or [vy at the antenna, r] (yaw_rate)
@@ -59,7 +64,8 @@ S_MEASURE_ERRORS = 42
 S_NOISE_CORRELATION = 43
 #: rad^2/s: the steering offset's Q density while a change alarm's raised density lasts (update.propagate_covariance)
 S_CHANGE_OFFSET_Q = 44
-N_SETTINGS = 45
+S_P0_HEADING_OFFSET = 45  # rad^2: P0 of the heading's misalignment h (0: not estimated, recovery.py re-initialises to it)
+N_SETTINGS = 46
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6
@@ -88,22 +94,27 @@ O_CHANGE_EVIDENCE = 47
 #: rad: a heading misaligned with the vehicle beyond vehicle.heading_offset as the innovations show it (std 0: none
 #: yet), and the relative error of Cf, Cr per radian of it (heading_signature.py)
 O_HEADING_ESTIMATE, O_HEADING_ESTIMATE_STD, O_HEADING_SENS_F, O_HEADING_SENS_R = 48, 49, 50, 51
-N_OUTPUTS = 52
+#: rad: the state h, the heading's misalignment (ekf.estimate_heading_offset; then the measure above is off), and its
+#: std (0, 0: not estimated)
+O_HEADING_OFFSET, O_HEADING_OFFSET_STD = 52, 53
+N_OUTPUTS = 54
 
 # memo vector
 M_T_PREV, M_INITIALISED, M_GATED, M_CUSUM, M_ADAPT_UNTIL, M_DIVERGED = 0, 1, 2, 3, 4, 5
 M_BIAS = 6  # memo[M_BIAS + i]: the first-order bias of state i from the tire's saturation (adaptation.py)
 # the innovations' measure of R (adaptation.learn_noise_scales): the mean ratio of the measurement noise
 # variance to R, for vy and for the second measurement, and the weighted seconds of data in each
-M_NOISE_VY, M_NOISE_SECOND, M_NOISE_SPAN_VY, M_NOISE_SPAN_SECOND = 14, 15, 16, 17
-M_DELAY_BIAS = 18  # memo[M_DELAY_BIAS + i]: the bias of state i per second of unconfigured GNSS delay
+M_NOISE_VY = M_BIAS + MAX_STATES  # each bias block holds MAX_STATES slots
+M_NOISE_SECOND, M_NOISE_SPAN_VY, M_NOISE_SPAN_SECOND = M_NOISE_VY + 1, M_NOISE_VY + 2, M_NOISE_VY + 3
+M_DELAY_BIAS = M_NOISE_SPAN_SECOND + 1  # memo[M_DELAY_BIAS + i]: the bias of state i per second of unconfigured GNSS delay
 # the online measure of that delay (adaptation.score_signature): score, information, seconds of data seen (both measures)
-M_DELAY_SCORE, M_DELAY_INFORMATION, M_DELAY_SETTLED = 26, 27, 28
+M_DELAY_SCORE = M_DELAY_BIAS + MAX_STATES
+M_DELAY_INFORMATION, M_DELAY_SETTLED = M_DELAY_SCORE + 1, M_DELAY_SCORE + 2
 # the same measure of the tire's saturation, in units of a tire at min_friction (adaptation.score_signature)
-M_SATURATION_SCORE, M_SATURATION_INFORMATION = 29, 30
-M_SCALE_BIAS = 31  # memo[M_SCALE_BIAS + i]: the bias of state i per unit (relative) steering gain error
+M_SATURATION_SCORE, M_SATURATION_INFORMATION = M_DELAY_SETTLED + 1, M_DELAY_SETTLED + 2
+M_SCALE_BIAS = M_SATURATION_INFORMATION + 1  # memo[M_SCALE_BIAS + i]: the bias of state i per unit (relative) steering gain error
 # 1 once both stiffnesses were known (adaptation.known_to): the slip lags are modelled from then on (kernels.py)
-M_LAG_ACTIVE = M_SCALE_BIAS + MAX_STATES  # each bias block holds MAX_STATES slots
+M_LAG_ACTIVE = M_SCALE_BIAS + MAX_STATES
 M_LAG_SPEED = M_LAG_ACTIVE + 1  # m/s, the speed the slip lags were last predicted at (0: none since a reset)
 #: memo[M_SPEED_CROSS + i]: Cov(error of state i, error of the last GNSS speed sample), which the next
 #: interval's speed shares (update.add_speed_noise)
@@ -177,6 +188,7 @@ V_BACKUP_X, V_BACKUP_MODEL, V_NEW_X, V_NEW_MODEL, V_BIAS = 0, 1, 2, 3, 4
 V_SPEED_GAIN = 5  # d x_{k+1} / d vx over the interval (the speed input's noise in Q)
 V_SPEED_CROSS = 6  # F times memo[M_SPEED_CROSS:] (update.add_speed_noise)
 V_BACKUP_CHANGE = 7  # the change tests' sums before the step, memo[M_CUSUM] then memo[M_SHIFT:] (recovery.py)
+V_VY_ROW = 8  # this epoch's row of H for the vy measurement, ~[1, antenna_x, 0..., -vx] (measurement_row.predict_vy)
 # rows of ws[W_GAIN]
 G_K0, G_K1, G_HP0, G_HP1 = 0, 1, 2, 3
 # rows of ws[W_BIAS]: what a model error adds to the predicted motion over the interval (adaptation.carry_bias),

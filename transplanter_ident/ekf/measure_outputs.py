@@ -3,8 +3,8 @@
 Every epoch, from what the step remembers (memo): the model errors the innovations show
 (:func:`.adaptation.signature_estimate`: a GNSS delay, the tires' saturation, a relaxation length, a
 steering gain, a heading misalignment), the factors on R and the innovations' correlation in time,
-and the directional change test's evidence. The stiffness's own sensitivities to each error are
-written with Cf and Cr (kernels.write_outputs).
+and the directional change test's evidence; and (:func:`write_sensitivities`, with Cf and Cr,
+kernels.write_outputs) the stiffness's own sensitivity to each error.
 """
 
 from __future__ import annotations
@@ -12,34 +12,42 @@ from __future__ import annotations
 from transplanter_ident.ekf.adaptation import noise_scale, signature_estimate
 from transplanter_ident.ekf.change import write_change_evidence
 from transplanter_ident.ekf.layout import (
+    M_DELAY_BIAS,
     M_DELAY_INFORMATION,
     M_DELAY_SCORE,
+    M_HEADING_BIAS,
     M_HEADING_INFORMATION,
     M_HEADING_SCORE,
     M_NOISE_SECOND,
     M_NOISE_SPAN_SECOND,
     M_NOISE_SPAN_VY,
     M_NOISE_VY,
+    M_RELAXATION_BIAS,
     M_RELAXATION_INFORMATION,
     M_RELAXATION_SCORE,
     M_SATURATION_INFORMATION,
     M_SATURATION_SCORE,
+    M_SCALE_BIAS,
     M_SCALE_INFORMATION,
     M_SCALE_SCORE,
     O_DELAY_ESTIMATE,
     O_DELAY_ESTIMATE_STD,
+    O_DELAY_SENS_F,
     O_HEADING_ESTIMATE,
     O_HEADING_ESTIMATE_STD,
+    O_HEADING_SENS_F,
     O_NOISE_CORRELATION_SECOND,
     O_NOISE_CORRELATION_VY,
     O_NOISE_SCALE_SECOND,
     O_NOISE_SCALE_VY,
     O_RELAXATION,
+    O_RELAXATION_SENS_F,
     O_RELAXATION_STD,
     O_SATURATION,
     O_SATURATION_STD,
     O_SCALE_ESTIMATE,
     O_SCALE_ESTIMATE_STD,
+    O_SCALE_SENS_F,
 )
 from transplanter_ident.ekf.noise_correlation import correlations
 from transplanter_ident.jit import inline_kernel
@@ -58,3 +66,17 @@ def write_measures(memo, settings, out):
     out[O_NOISE_SCALE_SECOND] = noise_scale(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND)
     out[O_NOISE_CORRELATION_VY], out[O_NOISE_CORRELATION_SECOND] = correlations(memo, settings)
     write_change_evidence(memo, settings, out)
+
+
+@inline_kernel
+def write_sensitivities(memo, i, k, c, dc, out):
+    """Cf's (k = 0) or Cr's (k = 1) relative error (estimate - truth) per unit of each model error left out.
+
+    From the first-order bias of its state i (memo, adaptation.carry_bias); c the stiffness, dc = dC/dtheta.
+    """
+    if c == 0.0:
+        return
+    out[O_DELAY_SENS_F + k] = -dc * memo[M_DELAY_BIAS + i] / c
+    out[O_SCALE_SENS_F + k] = -dc * memo[M_SCALE_BIAS + i] / c
+    out[O_RELAXATION_SENS_F + k] = -dc * memo[M_RELAXATION_BIAS + i] / c
+    out[O_HEADING_SENS_F + k] = -dc * memo[M_HEADING_BIAS + i] / c

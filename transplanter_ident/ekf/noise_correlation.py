@@ -115,7 +115,8 @@ def learn_noise_correlation(memo, settings, t, dt, e0, e1, s00, s11):
 
 
 @inline_kernel
-def learn_noise(memo, settings, heading, t, dt, speed, e0, e1, hph00, hph01, hph11, configured0, configured1):
+def learn_noise(memo, settings, heading, t, dt, speed, e0, e1, hph00, hph01, hph11, configured0, configured1,
+                velocity):
     """After an accepted epoch: R's variance as the innovations show it (adaptation.learn_noise_scales) and rho.
 
     R's variance is matched against S with R unwidened: H P^- H^T (hph*) plus the configured (or reported)
@@ -126,5 +127,7 @@ def learn_noise(memo, settings, heading, t, dt, speed, e0, e1, hph00, hph01, hph
     r0 = configured0 * noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY)
     r1 = configured1 * noise_scale(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND)
     white00, _, white11 = innovation_covariance(heading, hph00, hph01, hph11, r0, r1, speed)
-    learn_noise_scales(memo, settings, dt, e0, e1, white00 - r0, white11 - r1, r0, r1, configured0, configured1)
-    learn_noise_correlation(memo, settings, t, dt, e0, e1, white00, white11)
+    learn_noise_scales(memo, settings, dt, e0, e1, white00 - r0, white11 - r1, r0, r1, configured0, configured1,
+                       velocity)
+    if velocity:
+        learn_noise_correlation(memo, settings, t, dt, e0, e1, white00, white11)

@@ -138,6 +138,7 @@ def make_prediction(heading, lagged):  # noqa: ANN001, ANN201 - numba closures
             ws[W_F, i, nf] = acc_f
             ws[W_F, i, nr] = acc_r
             ws[W_F, i, nb] = -ws[W_E, i, nd]
+            ws[W_F, i, n - 1] = 0.0  # h, the heading's misalignment: in the vy measurement only
             ws[W_VEC, V_NEW_X, i], ws[W_VEC, V_NEW_MODEL, i] = acc, acc_m
             ws[W_VEC, V_SPEED_GAIN, i] = acc_v if speed_noise else 0.0
         for i in range(nd):

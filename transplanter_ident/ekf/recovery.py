@@ -10,10 +10,10 @@ even once Q is restored. So the filter re-initialises (status RESTARTED) when
 * MAX_DIVERGED steps in a row diverged;
 
 then the motion states come from the measurement (as after a gap), and when it is the parameter
-states [theta_f, theta_r, b] that diverged (in the failed step, or already before it), their
-covariance goes back to P0 (``S_P0_THETA_F``, ``S_P0_THETA_R``, ``S_P0_OFFSET``). Their values are
-kept: they are finite and within the stiffness bounds after a rollback (a non-finite one would
-restart from the middle of the bounds, or a zero offset).
+states [theta_f, theta_r, b, h] that diverged (in the failed step, or already before it), their
+covariance goes back to P0 (``S_P0_THETA_F``, ``S_P0_THETA_R``, ``S_P0_OFFSET``, ``S_P0_HEADING_OFFSET``).
+Their values are kept: they are finite and within the stiffness bounds after a rollback (a non-finite
+one would restart from the middle of the bounds, or a zero offset).
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ from transplanter_ident.ekf.layout import (
     N_SHIFT,
     S_HIGH,
     S_LOW,
+    S_P0_HEADING_OFFSET,
     S_P0_OFFSET,
     S_P0_THETA_F,
     S_P0_THETA_R,
@@ -74,11 +75,13 @@ def make_recovery(n, nd, max_variance, write_outputs, restart_motion):  # noqa: 
         p[nf, nf] = settings[S_P0_THETA_F]
         p[nr, nr] = settings[S_P0_THETA_R]
         p[nb, nb] = settings[S_P0_OFFSET]
+        p[n - 1, n - 1] = settings[S_P0_HEADING_OFFSET]
         for k in (nf, nr):
             if not math.isfinite(x[k]):
                 x[k] = 0.5 * (settings[S_LOW] + settings[S_HIGH])
-        if not math.isfinite(x[nb]):
-            x[nb] = 0.0
+        for k in (nb, n - 1):
+            if not math.isfinite(x[k]):
+                x[k] = 0.0
 
     @called_kernel
     def recover(x, p, model, memo, settings, t, vy_antenna, psi, yaw_rate, ws, out):

@@ -63,7 +63,7 @@ def slip_deficits(before, after, vehicle, dt, speed, steering_rate, first_lag, l
 
 
 @inline_kernel
-def propagate_relaxation_bias(memo, n, nd, nb, h1, antenna_x, updated, speed, eps_f, eps_r, ws):
+def propagate_relaxation_bias(memo, n, nd, nb, h1, updated, speed, eps_f, eps_r, ws):
     """The estimate's first-order bias per metre of relaxation length left out (memo M_RELAXATION_BIAS).
 
     The motion the prediction misses (the module docstring) into ws[W_BIAS, B_DIRECT], then
@@ -72,5 +72,5 @@ def propagate_relaxation_bias(memo, n, nd, nb, h1, antenna_x, updated, speed, ep
     for i in range(nd):
         kinematic = ws[W_F, i, X_VY] - (1.0 if i == X_VY else 0.0)
         ws[W_BIAS, B_DIRECT, i] = (eps_f - eps_r) * ws[W_F, i, nb] + eps_r * speed * kinematic
-    return carry_bias(memo, M_RELAXATION_BIAS, n, nd, h1, antenna_x, updated, B_DIRECT, ws, 0.0)
+    return carry_bias(memo, M_RELAXATION_BIAS, n, nd, h1, updated, B_DIRECT, ws, 0.0)
 

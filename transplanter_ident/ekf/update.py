@@ -1,7 +1,7 @@
 """The covariance prediction and the Joseph-form update of the joint EKF (paper eq. 12).
 
 :func:`make_update` compiles both for one state size (n states, nd motion states, the second
-measured state h1) so that their loops unroll. F's parameter rows are [0, I] (random walks).
+measured state h1) so that their loops unroll. F's parameter rows are [0, I] (random walks), H's vy row is :mod:`.measurement_row`'s.
 The speed is an input measured with noise: the mean of an interval's two GNSS samples. Its variance
 enters P through g = dx_{k+1}/dvx, and so does its first sample's, which the previous interval
 used too: without that covariance the filter took the speed's errors as white, and a heading
@@ -25,9 +25,8 @@ from transplanter_ident.ekf.layout import (
     W_GAIN,
     W_TMP,
     W_VEC,
-    X_R,
-    X_VY,
 )
+from transplanter_ident.ekf.measurement_row import vy_row_times, vy_row_times_column
 from transplanter_ident.jit import inline_kernel
 
 
@@ -36,7 +35,7 @@ def make_update(n, nd, h1):  # noqa: ANN001, ANN201
 
     Returns (propagate_covariance, add_speed_noise, joseph_update, keep_speed_cross).
     """
-    nf, nr, nb = nd, nd + 1, nd + 2  # theta_f, theta_r, steering offset
+    nf, nr, nb = nd, nd + 1, nd + 2  # theta_f, theta_r, steering offset (then h, the heading's misalignment)
 
     @inline_kernel
     def propagate_covariance(p, q, dt, adapting, settings, scale, ws):
@@ -93,14 +92,15 @@ def make_update(n, nd, h1):  # noqa: ANN001, ANN201
                 p[i, j] += 0.5 * (sample_variance * g_i * g_j + u_i * g_j + g_i * ws[W_VEC, V_SPEED_CROSS, j])
 
     @inline_kernel
-    def keep_speed_cross(memo, sample_variance, antenna_x, updated, ws):
+    def keep_speed_cross(memo, sample_variance, updated, ws):
         """memo[M_SPEED_CROSS:] = Cov(state error, n) = (I - K H) g var / 2 after the step (n: the last sample's error).
 
         Before the update the state's error holds g e, and Cov(e, n) = var / 2; an update (gain K in
-        ws[W_GAIN], zero rows where the step held them) takes it to (I - K H) times that.
+        ws[W_GAIN], zero rows where the step held them) takes it to (I - K H) times that. g is zero
+        beyond the motion states.
         """
         half = 0.5 * sample_variance
-        hc0 = half * (ws[W_VEC, V_SPEED_GAIN, X_VY] + antenna_x * ws[W_VEC, V_SPEED_GAIN, X_R])
+        hc0 = half * vy_row_times(ws, nd, ws[W_VEC, V_SPEED_GAIN])
         hc1 = half * ws[W_VEC, V_SPEED_GAIN, h1]
         for i in range(n):
             c = half * ws[W_VEC, V_SPEED_GAIN, i] if i < nd else 0.0
@@ -109,19 +109,20 @@ def make_update(n, nd, h1):  # noqa: ANN001, ANN201
             memo[M_SPEED_CROSS + i] = c
 
     @inline_kernel
-    def joseph_update(x, p, e0, e1, s00, s01, s11, det, antenna_x, motion_only, ws):
-        """X += K e; P = (I - K H) P (I - K H)^T + K R K^T with H = [[1, antenna_x, 0...], e_h1].
+    def joseph_update(x, p, e0, e1, s00, s01, s11, det, motion_only, heading_held, ws):
+        """X += K e; P = (I - K H) P (I - K H)^T + K R K^T with H = [H[0], e_h1] (H[0]: measurement_row.py).
 
         Evaluated expanded, P - K HP - (K HP)^T + K S K^T with S = H P H^T + R: the same function of
         K (so valid for any gain), in O(n^2). ``motion_only`` zeroes the parameter rows of K (a
-        Schmidt update: the stiffness and offset keep their estimate and take the right covariance).
+        Schmidt update: the stiffness and offset keep their estimate and take the right covariance);
+        ``heading_held`` zeroes h's row alone.
         """
         i00, i01, i11 = s11 / det, -s01 / det, s00 / det
         for i in range(n):
-            hp0, hp1 = p[X_VY, i] + antenna_x * p[X_R, i], p[h1, i]
+            hp0, hp1 = vy_row_times_column(ws, n, p, i), p[h1, i]
             k0 = hp0 * i00 + hp1 * i01
             k1 = hp0 * i01 + hp1 * i11
-            if motion_only and i >= nd:
+            if (motion_only and i >= nd) or (heading_held and i == n - 1):
                 k0, k1 = 0.0, 0.0
             ws[W_GAIN, G_K0, i] = k0
             ws[W_GAIN, G_K1, i] = k1

@@ -18,7 +18,12 @@ from dataclasses import dataclass, replace
 
 from transplanter_ident.config.parameters import EstimatorConfig
 from transplanter_ident.config.params_file import EstimatorParams
-from transplanter_ident.ekf.layout import O_HEADING_ESTIMATE, O_HEADING_ESTIMATE_STD
+from transplanter_ident.ekf.layout import (
+    O_HEADING_ESTIMATE,
+    O_HEADING_ESTIMATE_STD,
+    O_HEADING_OFFSET,
+    O_HEADING_OFFSET_STD,
+)
 from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.tuning.factor_search import TaskMap
 from transplanter_ident.tuning.measures import final_measure, pooled
@@ -41,7 +46,7 @@ class HeadingEstimate:
     def format(self) -> str:
         spread = f"{math.degrees(self.std):.2f}" if math.isfinite(self.std) else "inf"
         return (f"vehicle.heading_offset: {self.value:.5f} rad ({math.degrees(self.value):+.2f} +- {spread} deg; "
-                f"the filter's measure of a misaligned heading, pooled over {self.bags} "
+                f"the filter's estimate of a misaligned heading, pooled over {self.bags} "
                 f"bag{'s' if self.bags != 1 else ''}, {self.passes} pass{'es' if self.passes != 1 else ''})")
 
 
@@ -52,8 +57,13 @@ def with_heading_offset(params: EstimatorParams, offset: float) -> EstimatorPara
 
 
 def measured_misalignment(epochs: EpochArrays, config: EstimatorConfig) -> tuple[float, float]:
-    """(rad, std rad) of the misalignment one bag's innovations show beyond its offset, at its end (std 0: none)."""
-    return final_measure(epochs, config, (O_HEADING_ESTIMATE, O_HEADING_ESTIMATE_STD))
+    """(rad, std rad) of the misalignment one bag shows beyond its offset, at its end (std 0: none).
+
+    The filter's state h (``ekf.estimate_heading_offset``), else the innovations' measure of it.
+    """
+    columns = ((O_HEADING_OFFSET, O_HEADING_OFFSET_STD) if config.options.estimate_heading_offset
+               else (O_HEADING_ESTIMATE, O_HEADING_ESTIMATE_STD))
+    return final_measure(epochs, config, columns)
 
 
 def estimate_heading_offset(epochs_at: Callable[[EstimatorParams], Sequence[EpochArrays]], params: EstimatorParams,

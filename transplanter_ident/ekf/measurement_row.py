@@ -1,0 +1,76 @@
+"""The vy measurement's h(x) and its row of H (paper eq. 12, with the lever arm and the heading's misalignment).
+
+The assembler turns the GNSS velocity by the *measured* heading psi + h, so it gives, with the
+antenna's body-frame lateral velocity vy + antenna_x r and the speed vx it measured along that heading,
+
+    z_vy = (vy + antenna_x r) / cos h - vx tan h  ~  vy + antenna_x r - vx h,
+    H[0] = [1 / cos h, antenna_x / cos h, 0, ..., 0, (vy + antenna_x r) tan h / cos h - vx / cos^2 h]
+
+with h the last state (layout.X_HEADING_OFFSET; 0 when not estimated: H[0] = [1, antenna_x, 0..., -vx]).
+The heading measurement needs no h: the heading state integrates r from the first *measured* heading,
+so it holds the measured frame's heading; the prediction runs at the vehicle's forward speed
+(:func:`body_speed`). The step writes the row once per epoch
+(:func:`predict_vy`, into ws[W_VEC, V_VY_ROW]); the update, the speed's covariance and the model
+errors' bias propagation all read it there, so H is written in one place.
+"""
+
+from __future__ import annotations
+
+import math
+
+from transplanter_ident.ekf.layout import V_VY_ROW, W_VEC, X_R, X_VY
+from transplanter_ident.jit import inline_kernel
+
+
+@inline_kernel
+def predict_vy(ws, n, x, antenna_x, speed):
+    """H(x)'s vy entry for this epoch; H[0] into ws[W_VEC, V_VY_ROW, :n] (h: state n - 1)."""
+    heading_offset = x[n - 1]
+    secant, tangent = 1.0 / math.cos(heading_offset), math.tan(heading_offset)
+    antenna_vy = x[X_VY] + antenna_x * x[X_R]
+    for i in range(n):
+        ws[W_VEC, V_VY_ROW, i] = 0.0
+    ws[W_VEC, V_VY_ROW, X_VY] = secant
+    ws[W_VEC, V_VY_ROW, X_R] = antenna_x * secant
+    ws[W_VEC, V_VY_ROW, n - 1] = (antenna_vy * tangent - speed * secant) * secant
+    return antenna_vy * secant - speed * tangent
+
+
+@inline_kernel
+def body_speed(x, n, antenna_x, speed):
+    """The CG's forward speed in the vehicle's axes, from ``speed`` measured along the measured heading.
+
+    vx_m = cos h vx + sin h (vy + antenna_x r), so vx = (vx_m - sin h (vy + antenna_x r)) / cos h (the
+    antenna's lateral offset adds a second-order term); the prediction runs at it, the measurement at vx_m.
+    """
+    heading_offset = x[n - 1]
+    if heading_offset == 0.0:
+        return speed
+    return (speed - math.sin(heading_offset) * (x[X_VY] + antenna_x * x[X_R])) / math.cos(heading_offset)
+
+
+@inline_kernel
+def vy_row_times(ws, count, v):
+    """Sum over k < count of H[0, k] v[k] (count = n: H[0] v; the motion states alone: fewer)."""
+    acc = 0.0
+    for k in range(count):
+        acc += ws[W_VEC, V_VY_ROW, k] * v[k]
+    return acc
+
+
+@inline_kernel
+def vy_row_times_column(ws, n, m, j):
+    """(H[0] M)[j] = sum_k H[0, k] M[k, j] for an n x n matrix M (P)."""
+    acc = 0.0
+    for k in range(n):
+        acc += ws[W_VEC, V_VY_ROW, k] * m[k, j]
+    return acc
+
+
+@inline_kernel
+def vy_row_quadratic(ws, n, m):
+    """H[0] M H[0]^T for an n x n matrix M (the vy measurement's share of S = H P H^T + R)."""
+    acc = 0.0
+    for k in range(n):
+        acc += ws[W_VEC, V_VY_ROW, k] * vy_row_times_column(ws, n, m, k)
+    return acc
