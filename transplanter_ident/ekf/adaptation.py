@@ -300,11 +300,12 @@ def learn_noise_scales(memo, settings, dt, e0, e1, prior0, prior1, noise0, noise
     learned factor); r0, r1: this epoch's R as configured (or reported). Each sample weighs
     (noise / S)^2 (var e^2 = 2 S^2): an epoch whose prior is far less certain than its noise says
     little about R. A weighted mean over the first ``ekf.noise_memory`` seconds, then exponential with
-    that time constant. Only epochs that passed the gate count.
+    that time constant. Only epochs that passed the gate count. ``velocity`` False: the second
+    measurement's alone (kernels.py: vy's waits while a misaligned heading may still hide in it).
     """
     if settings[S_NOISE_ADAPTATION] < 0.5:
         return
-    if velocity:  # (kernels.py: not while a misaligned heading may still hide in vy)
+    if velocity:
         _learn_ratio(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY, dt, e0, prior0, noise0, r0)
     _learn_ratio(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND, dt, e1, prior1, noise1, r1)
 

@@ -1,8 +1,8 @@
 """The covariance prediction and the Joseph-form update of the joint EKF (paper eq. 12).
 
 :func:`make_update` compiles both for one state size (n states, nd motion states, the second
-measured state h1) so that their loops unroll. F's parameter rows are [0, I] (random walks), H's vy row is :mod:`.measurement_row`'s.
-The speed is an input measured with noise: the mean of an interval's two GNSS samples. Its variance
+measured state h1) so that their loops unroll. F's parameter rows are [0, I] (random walks); H's vy
+row is :mod:`.measurement_row`'s. The speed is an input measured with noise: the mean of an interval's two GNSS samples. Its variance
 enters P through g = dx_{k+1}/dvx, and so does its first sample's, which the previous interval
 used too: without that covariance the filter took the speed's errors as white, and a heading
 that integrates many intervals as better known than it is (overconfident at low speed).
