@@ -165,8 +165,8 @@ def test_the_independent_simulator_with_a_lever_arm_reads_the_same(degrees: floa
 def test_tuner_writes_the_heading_offset_and_replay_with_it_is_valid(tmp_path: Path, capsys) -> None:  # noqa: ANN001
     """``tuner --estimate-heading-offset`` on two drives 1.5 deg off, then replay of a third.
 
-    OUT.yaml's vehicle.heading_offset within 3 of its std and 0.2 deg of the truth (measured 1.50 +- 0.02 deg,
-    3 passes). The third drive, from 60 s on, with ``ekf.estimate_heading_offset`` false: valid in >= 90 % of
+    OUT.yaml's vehicle.heading_offset within 3 of its std and 0.2 deg of the truth (measured 1.51 +- 0.03 deg,
+    2 passes, from the state h; 1.50 +- 0.02 deg, 3 passes, from the measure in session 26). The third drive, from 60 s on, with ``ekf.estimate_heading_offset`` false: valid in >= 90 % of
     the epochs with OUT.yaml (measured 100 %), never without it; with the state and no offset, >= 90 %.
     """
     paths = []
