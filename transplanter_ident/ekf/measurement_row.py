@@ -11,7 +11,8 @@ The heading measurement needs no h: the heading state integrates r from the firs
 so it holds the measured frame's heading; the prediction runs at the vehicle's forward speed
 (:func:`body_speed`). The step writes the row once per epoch
 (:func:`predict_vy`, into ws[W_VEC, V_VY_ROW]); the update, the speed's covariance and the model
-errors' bias propagation all read it there, so H is written in one place.
+errors' bias propagation all read it there, so H is written in one place. The readers take its three
+non-zero entries only (a hot loop: the step reads the row some twenty times).
 """
 
 from __future__ import annotations
@@ -24,12 +25,10 @@ from transplanter_ident.jit import inline_kernel
 
 @inline_kernel
 def predict_vy(ws, n, x, antenna_x, speed):
-    """H(x)'s vy entry for this epoch; H[0] into ws[W_VEC, V_VY_ROW, :n] (h: state n - 1)."""
+    """H(x)'s vy entry for this epoch; H[0]'s non-zero entries (vy, r, h: state n - 1) into ws[W_VEC, V_VY_ROW]."""
     heading_offset = x[n - 1]
     secant, tangent = 1.0 / math.cos(heading_offset), math.tan(heading_offset)
     antenna_vy = x[X_VY] + antenna_x * x[X_R]
-    for i in range(n):
-        ws[W_VEC, V_VY_ROW, i] = 0.0
     ws[W_VEC, V_VY_ROW, X_VY] = secant
     ws[W_VEC, V_VY_ROW, X_R] = antenna_x * secant
     ws[W_VEC, V_VY_ROW, n - 1] = (antenna_vy * tangent - speed * secant) * secant
@@ -50,27 +49,27 @@ def body_speed(x, n, antenna_x, speed):
 
 
 @inline_kernel
-def vy_row_times(ws, count, v):
-    """Sum over k < count of H[0, k] v[k] (count = n: H[0] v; the motion states alone: fewer)."""
-    acc = 0.0
-    for k in range(count):
-        acc += ws[W_VEC, V_VY_ROW, k] * v[k]
-    return acc
+def vy_row_times_motion(ws, v):
+    """H[0] v over the motion states (vy, r): for a vector that is zero beyond them (the speed's gain)."""
+    return ws[W_VEC, V_VY_ROW, X_VY] * v[X_VY] + ws[W_VEC, V_VY_ROW, X_R] * v[X_R]
+
+
+@inline_kernel
+def vy_row_times(ws, n, v):
+    """H[0] v: its three non-zero entries, on vy, r and h (the last of n states)."""
+    return vy_row_times_motion(ws, v) + ws[W_VEC, V_VY_ROW, n - 1] * v[n - 1]
 
 
 @inline_kernel
 def vy_row_times_column(ws, n, m, j):
-    """(H[0] M)[j] = sum_k H[0, k] M[k, j] for an n x n matrix M (P)."""
-    acc = 0.0
-    for k in range(n):
-        acc += ws[W_VEC, V_VY_ROW, k] * m[k, j]
-    return acc
+    """(H[0] M)[j] for an n x n matrix M (P)."""
+    return (ws[W_VEC, V_VY_ROW, X_VY] * m[X_VY, j] + ws[W_VEC, V_VY_ROW, X_R] * m[X_R, j]
+            + ws[W_VEC, V_VY_ROW, n - 1] * m[n - 1, j])
 
 
 @inline_kernel
 def vy_row_quadratic(ws, n, m):
     """H[0] M H[0]^T for an n x n matrix M (the vy measurement's share of S = H P H^T + R)."""
-    acc = 0.0
-    for k in range(n):
-        acc += ws[W_VEC, V_VY_ROW, k] * vy_row_times_column(ws, n, m, k)
-    return acc
+    return (ws[W_VEC, V_VY_ROW, X_VY] * vy_row_times_column(ws, n, m, X_VY)
+            + ws[W_VEC, V_VY_ROW, X_R] * vy_row_times_column(ws, n, m, X_R)
+            + ws[W_VEC, V_VY_ROW, n - 1] * vy_row_times_column(ws, n, m, n - 1))

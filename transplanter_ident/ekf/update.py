@@ -26,7 +26,7 @@ from transplanter_ident.ekf.layout import (
     W_TMP,
     W_VEC,
 )
-from transplanter_ident.ekf.measurement_row import vy_row_times, vy_row_times_column
+from transplanter_ident.ekf.measurement_row import vy_row_times_column, vy_row_times_motion
 from transplanter_ident.jit import inline_kernel
 
 
@@ -100,7 +100,7 @@ def make_update(n, nd, h1):  # noqa: ANN001, ANN201
         beyond the motion states.
         """
         half = 0.5 * sample_variance
-        hc0 = half * vy_row_times(ws, nd, ws[W_VEC, V_SPEED_GAIN])
+        hc0 = half * vy_row_times_motion(ws, ws[W_VEC, V_SPEED_GAIN])
         hc1 = half * ws[W_VEC, V_SPEED_GAIN, h1]
         for i in range(n):
             c = half * ws[W_VEC, V_SPEED_GAIN, i] if i < nd else 0.0
