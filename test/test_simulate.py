@@ -176,7 +176,9 @@ def _steering(bag: Path) -> np.ndarray:
      lambda r: r.heading, 1e-3),  # tires lagging their slip
     (("--steering-scale", "1.03"), lambda c: replace(c, steering_scale=1.03), _steering,
      lambda r: r.steering, 1e-3),  # the steering sensor's gain error
-], ids=["gnss-correlation-time", "relaxation-length", "steering-scale"])
+    (("--steering-play", "0.005"), lambda c: replace(c, steering_play=0.005), _steering,
+     lambda r: r.steering, 2e-3),  # the steering linkage's play: the sensor 2.5 mrad ahead of the wheels
+], ids=["gnss-correlation-time", "relaxation-length", "steering-scale", "steering-play"])
 def test_an_imperfection_flag_gives_the_simulators_drive(tmp_path: Path, flags, change, read, simulated,  # noqa: ANN001
                                                          apart: float) -> None:
     """The bag's headings (or steering angles) are the simulator's with the imperfection, and differ from without."""

@@ -73,6 +73,10 @@ def build_parser() -> argparse.ArgumentParser:
                                 "acceleration (+: to the left; default 0)")
     imperfect.add_argument("--steering-scale", metavar="K", type=float,
                            help="the steering sensor reads the wheel angle x K (a calibration's gain error; default 1)")
+    imperfect.add_argument("--steering-play", metavar="RAD", type=float,
+                           help="free travel of the steering linkage, in wheel angle: > 0 the wheels follow the "
+                                "sensor through it, < 0 the sensor follows the wheels (replay with "
+                                "vehicle.steering_play: RAD; default 0)")
     imperfect.add_argument("--relaxation-length", metavar="M", type=float,
                            help="the tires build their force over M of travel, lagging the slip by about M / vx "
                                 "(a real tire's is of the order of its radius; the filter's model has no lag; "
@@ -162,6 +166,8 @@ def _run(args: argparse.Namespace) -> int:
             config = replace(config, bank_angle=args.side_slope)
         if args.steering_scale is not None:
             config = replace(config, steering_scale=args.steering_scale)
+        if args.steering_play is not None:
+            config = replace(config, steering_play=args.steering_play)
         if args.relaxation_length is not None:
             config = replace(config, relaxation_length=args.relaxation_length)
         if args.gnss_correlation_time is not None:

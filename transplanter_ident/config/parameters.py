@@ -33,6 +33,7 @@ class VehicleParams:
     steering_offset: float = 0.0  # rad: wheel angle = sensor - offset (initial value, or fixed)
     steering_scale: float = 1.0  # wheel angle per steering-sensor angle (the sensor's calibrated gain)
     steering_sensor_wheel: str = "center"  # the angle the sensor gives: center (single-track), left or right wheel
+    steering_play: float = 0.0  # rad of wheel angle, the linkage's free travel; > 0 wheels follow sensor, < 0 reverse
     track_width: float = 0.0  # m, front track: turns one wheel's angle into the single-track one (Ackermann)
     relaxation_length: float = 0.0  # m: each axle's force builds over this travel (0: at once, eq. 4)
     heading_offset: float = 0.0  # rad: yaw of the GNSS heading source relative to the vehicle x axis
@@ -44,7 +45,7 @@ class VehicleParams:
     def __post_init__(self) -> None:
         check_fields(self, "vehicle", positive=("mass", "lf", "lr", "max_steering", "max_speed", "max_lateral_speed",
                                                 "max_yaw_rate", "max_steering_rate", "steering_scale"),
-                     finite=("iz", "antenna_x", "antenna_y", "steering_offset", "heading_offset"),
+                     finite=("iz", "antenna_x", "antenna_y", "steering_offset", "heading_offset", "steering_play"),
                      non_negative=("track_width", "relaxation_length"))
         _check_choice("vehicle.steering_sensor_wheel", self.steering_sensor_wheel, STEERING_SENSOR_WHEELS)
         if self.steering_sensor_wheel != "center" and not self.track_width > 0.0:

@@ -90,6 +90,11 @@ SCHEMA: tuple[Param, ...] = (
          "single-track one with vehicle.track_width (Ackermann: cot delta = mean of the wheels' cot)",
          STEERING_SENSOR_WHEELS),
     _float("vehicle.track_width", 0.0, "m", "front track, for a steering sensor on one wheel", 0.0, 10.0),
+    _float("vehicle.steering_play", 0.0, "rad", "free travel (play, backlash) of the linkage between the steering "
+           "sensor and the wheels, in wheel angle: > 0 the wheels follow the sensor through it (a sensor on the "
+           "steering column, motor or cylinder), < 0 the sensor follows the wheels (play in the sensor's own "
+           "linkage); the assembler takes it out of every steering sample. 0.1 deg left out moves Cf by about "
+           "10 % while the estimate stays valid (docs/robustness.md)", -0.2, 0.2),
     _float("vehicle.relaxation_length", 0.0, "m", "the tires' relaxation length: each axle's lateral force builds "
            "over this much travel (0: at once, the paper's eq. 4). With it the filter carries the slip lags of both "
            "axles; 0.3 m left out biases Cf by about +12 % at 2 m/s while the estimate stays valid (README). Of the "

@@ -20,7 +20,7 @@ Here, for each GNSS epoch t_k (velocity and heading paired by stamp, :mod:`.pair
   exact model follow a ramp, which matters because at 2 m/s the lateral dynamics (time
   constant ~40 ms) are much faster than a 5 Hz GNSS interval. Each steering sample is first
   made the single-track angle (:meth:`.settings.AssemblerSettings.wheel_angle`: the sensor's
-  scale, and the Ackermann map for a sensor on one wheel).
+  scale, the linkage's play (:mod:`.steering_play`), and the Ackermann map for a sensor on one wheel).
 
 Bad input (DESIGN.md section 6, issue #14) is rejected with a reason and a kind (:mod:`.checks`):
 non-finite values, invalid markers, quaternions that are no orientation, stamps out of order, a
@@ -99,6 +99,7 @@ class EpochAssembler:
         self._last_steering_stamp = -math.inf
         self._last_steering_angle = 0.0
         self._steering_spikes = 0  # consecutive steering samples rejected as spikes
+        self._linkage = settings.linkage()  # the steering play's state, over every accepted sample (batch alike)
         self._pending: deque[tuple[float, float, float, float]] = deque()  # paired GNSS (t, vx_ant, vy_ant, yaw)
         self.uncovered_epochs = 0  # epochs formed before the steering covered their interval
         self._previous: _Anchor | None = None
@@ -181,7 +182,7 @@ class EpochAssembler:
         self._guard.accept("steering", stamp)
         self._last_steering_stamp = stamp
         self._last_steering_angle = angle
-        self._steering.append((stamp, self.settings.wheel_angle(angle)))
+        self._steering.append((stamp, self.settings.wheel_angle(angle, self._linkage)))
         while len(self._steering) > 2 and self._steering[0][0] < stamp - self.settings.steering_buffer:
             self._steering.popleft()
         return self._flush()

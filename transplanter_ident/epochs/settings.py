@@ -1,7 +1,8 @@
 """How samples become epochs: the assembler's settings, from the parameters (node and bags alike).
 
-Frames, lever arm, GNSS timing, the steering sensor (``vehicle.steering_scale``, and the wheel it sits
-on: :func:`.steering_line.single_track_angle`) and the vehicle's physical limits; the assembler
+Frames, lever arm, GNSS timing, the steering sensor (``vehicle.steering_scale``, the linkage's play:
+:mod:`.steering_play`, and the wheel it sits on: :func:`.steering_line.single_track_angle`) and the
+vehicle's physical limits; the assembler
 (:mod:`.assembler`) and its batch twin (:mod:`.batch`) read the same :class:`AssemblerSettings`.
 """
 
@@ -16,12 +17,13 @@ from transplanter_ident.config.parameters import VehicleParams
 from transplanter_ident.config.params_file import EstimatorParams
 from transplanter_ident.config.schema import FRAMES
 from transplanter_ident.epochs.steering_line import ackermann_ratio, single_track_angle
+from transplanter_ident.epochs.steering_play import SteeringPlay, without_play
 
 
 def steering_sensor(vehicle: VehicleParams) -> dict[str, float]:
-    """The assembler's ``steering_scale`` and ``ackermann`` for the vehicle's steering sensor."""
+    """The assembler's ``steering_scale``, ``steering_play`` and ``ackermann`` for the vehicle's steering sensor."""
     ratio = ackermann_ratio(vehicle.steering_sensor_wheel, vehicle.track_width, vehicle.lf + vehicle.lr)
-    return {"steering_scale": vehicle.steering_scale, "ackermann": ratio}
+    return {"steering_scale": vehicle.steering_scale, "steering_play": vehicle.steering_play, "ackermann": ratio}
 
 
 @dataclass(frozen=True)
@@ -46,6 +48,7 @@ class AssemblerSettings:
     max_yaw_rate: float = math.inf  # rad/s: |interval-mean yaw rate|
     max_steering_rate: float = math.inf  # rad/s: |change from the last steering sample| / dt
     steering_scale: float = 1.0  # wheel angle per sensor angle; the limits above apply to the sensor's reading
+    steering_play: float = 0.0  # rad of wheel angle, the linkage's free travel (steering_play; sign: where it lies)
     ackermann: float = 0.0  # steering_line.single_track_angle's ratio (0: the sensor gives the single-track angle)
 
     @classmethod
@@ -74,13 +77,22 @@ class AssemblerSettings:
             if getattr(self, name) not in FRAMES:
                 raise ValueError(f"frames.{name.split('_')[0]} must be enu or ned, got {getattr(self, name)!r}")
 
-    def wheel_angle(self, sensor: float) -> float:
-        """The single-track steering angle of one steering-sensor reading (scale, then the wheel's Ackermann map)."""
-        return single_track_angle(self.steering_scale * sensor, self.ackermann)
+    def linkage(self) -> SteeringPlay:
+        """A fresh steering linkage with this play, for :meth:`wheel_angle`'s readings in order."""
+        return SteeringPlay(self.steering_play)
+
+    def wheel_angle(self, sensor: float, linkage: SteeringPlay | None = None) -> float:
+        """The single-track steering angle of one steering-sensor reading.
+
+        The sensor's scale, then the linkage's play (``linkage``: the state of the readings before; none:
+        no play), then the wheel's Ackermann map.
+        """
+        scaled = self.steering_scale * sensor
+        return single_track_angle(scaled if linkage is None else linkage.wheel(scaled), self.ackermann)
 
     def wheel_angles(self, sensor: np.ndarray) -> np.ndarray:
-        """:meth:`wheel_angle` of every reading, the same floating-point operations (the batch assembler)."""
-        scaled = self.steering_scale * np.asarray(sensor, dtype=np.float64)
+        """:meth:`wheel_angle` of every reading in order from :meth:`linkage`, the same operations (batch)."""
+        scaled = without_play(self.steering_scale * np.asarray(sensor, dtype=np.float64), self.steering_play)
         if self.ackermann == 0.0:
             return scaled
         return np.array([single_track_angle(angle, self.ackermann) for angle in scaled.tolist()])

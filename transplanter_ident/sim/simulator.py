@@ -32,6 +32,7 @@ import numpy as np
 
 from transplanter_ident.config.parameters import VehicleParams, check_fields
 from transplanter_ident.epochs.frames import wrap_angle
+from transplanter_ident.sim.sensors import antenna_velocity_enu, correlated, through_play
 from transplanter_ident.sim.signals import (
     Signal,
     StiffnessSchedule,
@@ -94,6 +95,9 @@ class SimConfig:
     small_angle: bool = True  # cos(delta) -> 1, so linear tires reproduce eq. (4) exactly
     steering_offset: float = 0.0  # rad: the steering sensor reads the wheel angle + this
     steering_scale: float = 1.0  # the steering sensor reads the wheel angle x this (a calibration's gain error)
+    #: rad: the steering linkage's free travel (vehicle.steering_play): > 0 the wheels follow the sensor through it,
+    #: < 0 the sensor follows the wheels
+    steering_play: float = 0.0
     gnss_delay: float = 0.0  # s: GNSS messages are stamped this late (the motion is at stamp - delay)
     #: rad: a cross slope along the path (a field's side slope): gravity adds g sin(bank) to dvy/dt (+: to the left)
     bank_angle: float = 0.0
@@ -115,6 +119,7 @@ class SimConfig:
         require_finite("gnss_delay", self.gnss_delay)
         require_finite("bank_angle", self.bank_angle)
         require_finite("relaxation_length", self.relaxation_length)
+        require_finite("steering_play", self.steering_play)
         if self.relaxation_length < 0.0:
             raise ValueError(f"relaxation_length must be >= 0, got {self.relaxation_length!r}")
         if not (len(self.gnss_degraded) == 3 and all(math.isfinite(v) for v in self.gnss_degraded)
@@ -178,12 +183,13 @@ def simulate(config: SimConfig) -> SimResult:
     noise = config.noise
     start, end, factor = config.gnss_degraded
     scale = np.where((gnss_time >= start) & (gnss_time < end), factor, 1.0)
-    vel_errors = _correlated(rng.standard_normal(vel_enu.shape), gnss_time, noise.correlation_time)
+    vel_errors = correlated(rng.standard_normal(vel_enu.shape), gnss_time, noise.correlation_time)
     vel_meas = vel_enu + (noise.velocity * scale)[:, None] * vel_errors
-    heading_errors = _correlated(rng.standard_normal(psi.shape), gnss_time, noise.correlation_time)
+    heading_errors = correlated(rng.standard_normal(psi.shape), gnss_time, noise.correlation_time)
     heading_meas = wrap_angle(psi + noise.heading * scale * heading_errors)
     wheel = _evaluate(config.steering, steering_time)
-    steer_meas = (config.steering_scale * wheel + noise.steering * rng.standard_normal(steering_time.shape)
+    steer_meas = (config.steering_scale * through_play(wheel, config.steering_play)
+                  + noise.steering * rng.standard_normal(steering_time.shape)
                   + config.steering_offset)
 
     return SimResult(
@@ -203,27 +209,6 @@ def simulate(config: SimConfig) -> SimResult:
         velocity_std=noise.velocity * scale,
         heading_std=noise.heading * scale,
     )
-
-
-def _correlated(white: np.ndarray, t: np.ndarray, correlation_time: float) -> np.ndarray:
-    """Unit-variance first-order Gauss-Markov errors from unit white draws (rows: samples at t)."""
-    if correlation_time <= 0.0 or len(t) < 2:
-        return white
-    a = np.exp(-np.diff(t) / correlation_time)
-    out = np.array(white, dtype=float)
-    for k in range(1, len(t)):
-        out[k] = a[k - 1] * out[k - 1] + math.sqrt(1.0 - a[k - 1] ** 2) * white[k]
-    return out
-
-
-def antenna_velocity_enu(
-    vx: np.ndarray, vy: np.ndarray, r: np.ndarray, psi: np.ndarray, vehicle: VehicleParams
-) -> np.ndarray:
-    """(N, 2) east/north velocity of the antenna: v_cg + r x lever arm, rotated by psi."""
-    vxa = vx - r * vehicle.antenna_y
-    vya = vy + r * vehicle.antenna_x
-    cos_psi, sin_psi = np.cos(psi), np.sin(psi)
-    return np.column_stack((vxa * cos_psi - vya * sin_psi, vxa * sin_psi + vya * cos_psi))
 
 
 def _sample_times(offset: float, rate: float, duration: float) -> np.ndarray:
