@@ -12,6 +12,9 @@ the objective ``nll`` the estimate has a std (:func:`transplanter_ident.tuning.d
 over all the bags' epochs), which goes into ``ekf.delay_uncertainty`` (:meth:`DelayRun.calibration`):
 the timing error it may leave is then in the reported Cf, Cr std.
 
+``--estimate-steering-play`` then finds ``vehicle.steering_play`` the same way: each candidate play
+re-assembles the decoded samples (:mod:`transplanter_ident.tuning.steering_play`), at the delay found.
+
 ``--estimate-yaw-inertia`` last finds ``vehicle.iz`` (:mod:`transplanter_ident.tuning.yaw_inertia`; with
 ``--estimate-steering-scale`` jointly, :mod:`transplanter_ident.tuning.scale_and_inertia`) on the same
 epochs; with ``nll`` its std goes into ``ekf.yaw_inertia_uncertainty`` (:func:`inertia_calibration`).
@@ -54,6 +57,12 @@ from transplanter_ident.tuning.scale_and_inertia import (
     LOCATING_OBJECTIVE,
     pooled_pair_objective,
     search_scale_and_inertia,
+)
+from transplanter_ident.tuning.steering_play import (
+    PlayEstimate,
+    estimate_steering_play,
+    play_objective,
+    with_steering_play,
 )
 from transplanter_ident.tuning.steering_scale import (
     pooled_scale_objective,
@@ -101,30 +110,64 @@ def checked_delay_range(bounds: Sequence[float]) -> tuple[float, float]:
     return low, high
 
 
+def decode_inputs(bags: Sequence[str], params: EstimatorParams, backend: Backend, allow_partial: bool, what: str,
+                  out: Any) -> list[Any]:
+    """Each bag's input samples (``bags.inputs.BagInputs``), decoded once for a search that re-assembles them."""
+    from transplanter_ident.bags.inputs import read_bag_inputs  # rosbags only where bags are read
+
+    inputs = backend.map(read_bag_inputs, [(bag, params, allow_partial) for bag in bags])
+    for item in inputs:
+        print(f"tuner: {item.bag}: {len(item.samples)} input samples decoded for the {what} search"
+              f"{f'; note: {item.note}' if item.note else ''}", file=out, flush=True)
+    return inputs
+
+
+def sample_scores(inputs: Sequence[Any], params: EstimatorParams, backend: Backend, score: Callable[..., tuple[float, int]],
+                  objective: str, tune_stiffness_noise: bool) -> Callable[[Sequence[float]], list[list[tuple[float, int]]]]:
+    """Per candidate value, every bag's (objective, epochs) by ``score(samples, params, value, ...)``, in parallel."""
+    def scores(values: Sequence[float]) -> list[list[tuple[float, int]]]:
+        tasks = [(item.samples, params, v, objective, tune_stiffness_noise) for v in values for item in inputs]
+        results = backend.map(score, tasks)
+        return [results[i * len(inputs):(i + 1) * len(inputs)] for i in range(len(values))]
+
+    return scores
+
+
 def estimate_bag_delay(bags: Sequence[str], params: EstimatorParams, backend: Backend, *, objective: str,
                        tune_stiffness_noise: bool = False, cache: Path | None = None, allow_partial: bool = False,
                        delay_range: tuple[float, float] = DELAY_RANGE, stream: Any = None) -> DelayRun:
     """Decode the bags once, search the delay, and return the bags' epochs at the estimate."""
     from transplanter_ident.bags.cache import store_bag_epochs  # rosbags only where bags are read
-    from transplanter_ident.bags.inputs import read_bag_inputs
 
     out = stream if stream is not None else sys.stderr
-    inputs = backend.map(read_bag_inputs, [(bag, params, allow_partial) for bag in bags])
-    for item in inputs:
-        print(f"tuner: {item.bag}: {len(item.samples)} input samples decoded for the delay search"
-              f"{f'; note: {item.note}' if item.note else ''}", file=out, flush=True)
-
-    def scores(delays: Sequence[float]) -> list[list[tuple[float, int]]]:
-        tasks = [(item.samples, params, d, objective, tune_stiffness_noise) for d in delays for item in inputs]
-        values = backend.map(delay_objective, tasks)
-        return [values[i * len(inputs):(i + 1) * len(inputs)] for i in range(len(delays))]
-
+    inputs = decode_inputs(bags, params, backend, allow_partial, "delay", out)
+    scores = sample_scores(inputs, params, backend, delay_objective, objective, tune_stiffness_noise)
     estimate = estimate_delay(scores, objective, *delay_range)
     print(f"tuner: {estimate.format(objective)}", file=out, flush=True)
     chosen = with_delay(params, estimate.delay)
     decoded = [store_bag_epochs(item.bag, chosen, assemble_epochs(item.samples, params, estimate.delay),
                                 item.truth, cache) for item in inputs]
     return DelayRun(estimate, chosen, decoded)
+
+
+def estimate_bag_play(bags: Sequence[str], params: EstimatorParams, backend: Backend, *, objective: str,
+                      tune_stiffness_noise: bool = False, cache: Path | None = None, allow_partial: bool = False,
+                      stream: Any = None) -> tuple[PlayEstimate, EstimatorParams, list[Any]]:
+    """``--estimate-steering-play``: decode the bags once, search the play (at the configured or found delay).
+
+    Returns the estimate, the parameters with it, and the bags' epochs at it (cached under those parameters).
+    """
+    from transplanter_ident.bags.cache import store_bag_epochs  # rosbags only where bags are read
+
+    out = stream if stream is not None else sys.stderr
+    inputs = decode_inputs(bags, params, backend, allow_partial, "steering play", out)
+    estimate = estimate_steering_play(sample_scores(inputs, params, backend, play_objective, objective,
+                                                    tune_stiffness_noise), objective)
+    print(f"tuner: {estimate.format(objective)}", file=out, flush=True)
+    chosen = with_steering_play(params, estimate.play)
+    decoded = [store_bag_epochs(item.bag, chosen, assemble_epochs(item.samples, chosen, chosen.gnss.delay),
+                                item.truth, cache) for item in inputs]
+    return estimate, chosen, decoded
 
 
 def scale_calibration(estimate: FactorEstimate, params: EstimatorParams, objective: str) -> dict[str, tuple[float, str]]:

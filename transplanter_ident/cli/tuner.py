@@ -2,7 +2,8 @@
 
 ``tuner BAG [BAG ...] -o OUT.yaml [--params-file P.yaml ...] [--algorithm ipso|pso|cmaes] [--objective mae|nll]
 [--particles N] [--iterations N] [--seed N] [--report DIR] [--jobs N] [--dask ADDRESS] [--epoch-cache DIR |
---no-epoch-cache] [--estimate-delay [--delay-range LOW HIGH]] [--estimate-steering-scale] [--estimate-yaw-inertia]
+--no-epoch-cache] [--estimate-delay [--delay-range LOW HIGH]] [--estimate-steering-play] [--estimate-steering-scale]
+[--estimate-yaw-inertia]
 [--estimate-relaxation-length] [--estimate-heading-offset] [--tune-stiffness-noise] [--q-span DECADES]
 [--no-leave-one-out] [--debug]``
 
@@ -11,7 +12,7 @@
    finds ``vehicle.heading_offset`` from the filter's measure (:mod:`transplanter_ident.tuning.heading_offset`,
    the bags decoded again at each pass); with ``--estimate-delay``, decodes each
    bag once and first searches ``gnss.delay`` over -0.2-0.3 s on the same objective at the starting Q/R,
-   then ``vehicle.steering_scale``, ``vehicle.iz`` and ``vehicle.relaxation_length`` if asked
+   then ``vehicle.steering_play`` (re-assembling the decoded samples likewise), ``vehicle.steering_scale``, ``vehicle.iz`` and ``vehicle.relaxation_length`` if asked
    (:mod:`transplanter_ident.cli.delay_search`), and uses the epochs at the estimates;
 2. searches the log10 diagonal of Q and R (eq. 22, :mod:`tuning`): the physical noises (vy, r, psi process
    noise and R; the stiffness and offset random walks and the change mechanism keep their designed values
@@ -146,6 +147,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "at it; writes it (with nll, and its std as ekf.delay_uncertainty) into OUT.yaml")
     parser.add_argument("--delay-range", metavar=("LOW", "HIGH"), nargs=2, type=float, default=DELAY_RANGE, help=f"s "
                         f"(default {DELAY_RANGE[0]:g} {DELAY_RANGE[1]:g}; < 0: the steering is stamped after the GNSS)")
+    parser.add_argument("--estimate-steering-play", action="store_true", help="then search vehicle.steering_play "
+                        "(the steering linkage's free travel, -1.15 to 1.15 deg, signed) on the bags at the starting "
+                        "Q/R, each candidate re-assembling them; writes it into OUT.yaml, and Q/R are tuned at it")
     parser.add_argument("--estimate-steering-scale", action="store_true", help="then search vehicle.steering_scale "
                         "(0.95-1.05 x the configured) likewise, tune Q/R at it; writes it (with nll, and its std as "
                         "ekf.steering_scale_uncertainty) into OUT.yaml")
@@ -292,7 +296,14 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
         params, decoded = found.params, found.decoded
         estimated.update(found.calibration(args.objective))
         report_decoded(decoded, cache_dir(args), sys.stderr)
-    else:
+    if args.estimate_steering_play:  # it shapes the epochs too: at the delay found, ahead of the epochs' factors
+        from transplanter_ident.cli.delay_search import estimate_bag_play
+
+        play, params, decoded = estimate_bag_play(args.bags, params, local, objective=args.objective,
+                                                  tune_stiffness_noise=args.tune_stiffness_noise, cache=cache_dir(args),
+                                                  allow_partial=args.allow_partial)
+        estimated["vehicle.steering_play"] = (play.play, play.format(args.objective))
+    if not (args.estimate_delay or args.estimate_steering_play):
         decoded = load_bags(args.bags, params, local, cache_dir(args), allow_partial=args.allow_partial)
     if args.estimate_steering_scale or args.estimate_yaw_inertia or args.estimate_relaxation_length:  # ahead of Q/R
         from transplanter_ident.cli.delay_search import calibrate_vehicle
