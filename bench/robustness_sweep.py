@@ -37,6 +37,7 @@ from transplanter_ident.config.parameters import (  # noqa: E402
     ValiditySettings,
     VehicleParams,
 )
+from transplanter_ident.epochs.settings import steering_sensor  # noqa: E402
 from transplanter_ident.evaluation.validity import decide_sequence  # noqa: E402
 from transplanter_ident.sim.signals import (  # noqa: E402
     StiffnessSchedule,
@@ -84,6 +85,15 @@ ROWS: dict[str, dict[str, object]] = {
     "steering gain +3 %": {"steering_scale": 1.03},
     "steering gain +3 %, vehicle.steering_scale set": {"steering_scale": 1.03,
                                                         "filter_vehicle": VehicleParams(steering_scale=1.0 / 1.03)},
+    "steering play 0.1 deg, unset": {"steering_play": DEG(0.1)},
+    "steering play -0.1 deg, unset": {"steering_play": DEG(-0.1)},
+    "steering play 0.3 deg, unset": {"steering_play": DEG(0.3)},
+    "steering play 0.5 deg, vehicle.steering_play set": {"steering_play": DEG(0.5),
+                                                         "filter_vehicle": VehicleParams(steering_play=DEG(0.5))},
+    "steering play -0.3 deg, vehicle.steering_play set": {"steering_play": DEG(-0.3),
+                                                          "filter_vehicle": VehicleParams(steering_play=DEG(-0.3))},
+    "steering play 0.5 deg, set, 1.5 m/s": {"steering_play": DEG(0.5), "speed": 1.5, "duration": 180.0,
+                                            "filter_vehicle": VehicleParams(steering_play=DEG(0.5))},
     "configured mass +10 %": {"filter_vehicle": replace(VehicleParams(), mass=792.0)},
     "configured yaw inertia +20 %": {"filter_vehicle": replace(VehicleParams(), iz=1.2 * VehicleParams().yaw_inertia)},
     "configured CG 5 cm back (lf +5 cm)": {"filter_vehicle": replace(VehicleParams(), lf=0.75, lr=0.35)},
@@ -179,7 +189,7 @@ def row_figures(name: str, seeds: int, options: FilterOptions, settings: Validit
                                  noise=with_stiffness_noise(ALL_ROWS[name].get("filter_noise", NoiseParams()),
                                                             stiffness_noise))
         run = run_drive(result, config)
-        valid = decide_sequence(config, settings, epochs_of(result, steering_scale=told.steering_scale), run.outputs)
+        valid = decide_sequence(config, settings, epochs_of(result, **steering_sensor(told)), run.outputs)
         after = run.t >= 30.0
         front, rear = run.covered()
         missed = ~(front & rear)
