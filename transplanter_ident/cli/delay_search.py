@@ -13,7 +13,8 @@ over all the bags' epochs), which goes into ``ekf.delay_uncertainty`` (:meth:`De
 the timing error it may leave is then in the reported Cf, Cr std.
 
 ``--estimate-steering-play`` then finds ``vehicle.steering_play`` the same way: each candidate play
-re-assembles the decoded samples (:mod:`transplanter_ident.tuning.steering_play`), at the delay found.
+re-assembles the decoded samples (:mod:`transplanter_ident.tuning.steering_play`). With ``--estimate-delay``
+too, both are searched jointly (:func:`estimate_bag_delay_and_play`): a play looks like a delay.
 
 ``--estimate-yaw-inertia`` last finds ``vehicle.iz`` (:mod:`transplanter_ident.tuning.yaw_inertia`; with
 ``--estimate-steering-scale`` jointly, :mod:`transplanter_ident.tuning.scale_and_inertia`) on the same
@@ -60,7 +61,9 @@ from transplanter_ident.tuning.scale_and_inertia import (
 )
 from transplanter_ident.tuning.steering_play import (
     PlayEstimate,
+    estimate_delay_and_play,
     estimate_steering_play,
+    pair_objective,
     play_objective,
     with_steering_play,
 )
@@ -168,6 +171,52 @@ def estimate_bag_play(bags: Sequence[str], params: EstimatorParams, backend: Bac
     decoded = [store_bag_epochs(item.bag, chosen, assemble_epochs(item.samples, chosen, chosen.gnss.delay),
                                 item.truth, cache) for item in inputs]
     return estimate, chosen, decoded
+
+
+def estimate_bag_delay_and_play(bags: Sequence[str], params: EstimatorParams, backend: Backend, *, objective: str,
+                                tune_stiffness_noise: bool = False, cache: Path | None = None,
+                                allow_partial: bool = False, delay_range: tuple[float, float] = DELAY_RANGE,
+                                stream: Any = None) -> tuple[DelayRun, PlayEstimate]:
+    """``--estimate-delay`` with ``--estimate-steering-play``: both searched jointly (they look alike).
+
+    Returns the delay's run (the parameters with both, the bags' epochs at them, cached) and the play.
+    """
+    from transplanter_ident.bags.cache import store_bag_epochs  # rosbags only where bags are read
+
+    out = stream if stream is not None else sys.stderr
+    inputs = decode_inputs(bags, params, backend, allow_partial, "joint delay and steering play", out)
+    scores = sample_scores(inputs, params, backend, pair_objective, objective, tune_stiffness_noise)
+    start = (min(max(params.gnss.delay, delay_range[0]), delay_range[1]), params.config.vehicle.steering_play)
+    delay, play = estimate_delay_and_play(scores, objective, start, delay_range)
+    for found in (delay, play):
+        print(f"tuner: {found.format(objective)} (jointly)", file=out, flush=True)
+    chosen = with_steering_play(with_delay(params, delay.delay), play.play)
+    decoded = [store_bag_epochs(item.bag, chosen, assemble_epochs(item.samples, chosen, delay.delay), item.truth,
+                                cache) for item in inputs]
+    return DelayRun(delay, chosen, decoded), play
+
+
+def calibrate_timing(bags: Sequence[str], params: EstimatorParams, backend: Backend,
+                     estimated: dict[str, tuple[float, str]], *, delay: bool, play: bool,
+                     delay_range: tuple[float, float] = DELAY_RANGE, **search: Any) -> tuple[EstimatorParams, list[Any]]:
+    """``--estimate-delay`` (issue #13 item 4) and ``--estimate-steering-play``, jointly when both are asked.
+
+    ``search``: objective, tune_stiffness_noise, cache, allow_partial. Adds the keys to write to ``estimated``;
+    returns the parameters and the bags' epochs at the estimates.
+    """
+    found_play = None
+    if delay:
+        if play:
+            found, found_play = estimate_bag_delay_and_play(bags, params, backend, delay_range=delay_range, **search)
+        else:
+            found = estimate_bag_delay(bags, params, backend, delay_range=delay_range, **search)
+        params, decoded = found.params, found.decoded
+        estimated.update(found.calibration(search["objective"]))
+    else:
+        found_play, params, decoded = estimate_bag_play(bags, params, backend, **search)
+    if found_play is not None:
+        estimated["vehicle.steering_play"] = (found_play.play, found_play.format(search["objective"]))
+    return params, decoded
 
 
 def scale_calibration(estimate: FactorEstimate, params: EstimatorParams, objective: str) -> dict[str, tuple[float, str]]:

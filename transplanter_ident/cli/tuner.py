@@ -287,23 +287,17 @@ def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend
 
         params = calibrate_heading(lambda at: [item.epochs for item in load_bags(
             args.bags, at, local, cache_dir(args), allow_partial=args.allow_partial)], params, local, estimated)
-    if args.estimate_delay:  # gnss.delay first (issue #13 item 4), then Q/R on the epochs at that delay
-        from transplanter_ident.cli.delay_search import checked_delay_range, estimate_bag_delay
+    if args.estimate_delay or args.estimate_steering_play:  # they shape the epochs: ahead of the rest
+        from transplanter_ident.cli.delay_search import calibrate_timing, checked_delay_range
 
-        found = estimate_bag_delay(args.bags, params, local, objective=args.objective,
-                                   tune_stiffness_noise=args.tune_stiffness_noise, cache=cache_dir(args),
-                                   allow_partial=args.allow_partial, delay_range=checked_delay_range(args.delay_range))
-        params, decoded = found.params, found.decoded
-        estimated.update(found.calibration(args.objective))
-        report_decoded(decoded, cache_dir(args), sys.stderr)
-    if args.estimate_steering_play:  # it shapes the epochs too: at the delay found, ahead of the epochs' factors
-        from transplanter_ident.cli.delay_search import estimate_bag_play
-
-        play, params, decoded = estimate_bag_play(args.bags, params, local, objective=args.objective,
-                                                  tune_stiffness_noise=args.tune_stiffness_noise, cache=cache_dir(args),
-                                                  allow_partial=args.allow_partial)
-        estimated["vehicle.steering_play"] = (play.play, play.format(args.objective))
-    if not (args.estimate_delay or args.estimate_steering_play):
+        params, decoded = calibrate_timing(args.bags, params, local, estimated, delay=args.estimate_delay,
+                                           play=args.estimate_steering_play,
+                                           delay_range=checked_delay_range(args.delay_range), objective=args.objective,
+                                           tune_stiffness_noise=args.tune_stiffness_noise, cache=cache_dir(args),
+                                           allow_partial=args.allow_partial)
+        if args.estimate_delay:
+            report_decoded(decoded, cache_dir(args), sys.stderr)
+    else:
         decoded = load_bags(args.bags, params, local, cache_dir(args), allow_partial=args.allow_partial)
     if args.estimate_steering_scale or args.estimate_yaw_inertia or args.estimate_relaxation_length:  # ahead of Q/R
         from transplanter_ident.cli.delay_search import calibrate_vehicle
