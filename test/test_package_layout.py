@@ -160,7 +160,7 @@ def test_the_filter_memo_slots_never_overlap() -> None:
     from transplanter_ident.ekf import layout
 
     blocks = {"M_BIAS", "M_DELAY_BIAS", "M_SCALE_BIAS", "M_SPEED_CROSS", "M_INERTIA_BIAS", "M_RELAXATION_BIAS",
-              "M_HEADING_BIAS"}
+              "M_HEADING_BIAS", "M_PLAY_BIAS"}
     widths = {"M_SHIFT": layout.N_SHIFT, "M_SHIFT_POWER": 2, "M_SHIFT_LAG": 2, "M_SHIFT_LAST": 2,
               "M_CORRELATION_LAG": 2, "M_CORRELATION_POWER": 2, "M_CORRELATION_LAST": 2}
     owner: dict[int, str] = {}

@@ -59,7 +59,7 @@ def test_the_play_is_found_on_two_drives(play: float) -> None:
 
 
 def test_cli_writes_the_play_and_replay_loads_it(tmp_path: Path, capsys) -> None:  # noqa: ANN001
-    """Two drives through 0.3 deg of play: OUT.yaml holds the play, and replay with it is right."""
+    """Two drives through 0.3 deg of play: OUT.yaml holds the play and its std, and replay with it is right."""
     from transplanter_ident.bags import write_sim_bag
 
     play = 0.005
@@ -73,7 +73,11 @@ def test_cli_writes_the_play_and_replay_loads_it(tmp_path: Path, capsys) -> None
                        "--no-leave-one-out"]) == 0
     printed = capsys.readouterr()
     assert "vehicle.steering_play:" in printed.err and "# estimated vehicle.steering_play:" in out.read_text()
-    assert abs(load_params([str(out)]).config.vehicle.steering_play - play) <= 0.0015
+    tuned = load_params([str(out)]).config
+    assert abs(tuned.vehicle.steering_play - play) <= 0.0015
+    # its std goes into the band: ekf.steering_play_uncertainty, and the error is within 3 of it
+    assert 0.0001 <= tuned.options.steering_play_uncertainty <= 0.002
+    assert abs(tuned.vehicle.steering_play - play) <= 3.0 * tuned.options.steering_play_uncertainty
 
     assert replay.main([str(bags[0])]) == 0
     unset = final_errors(capsys.readouterr().out)
@@ -135,7 +139,7 @@ def test_cli_searches_both_jointly_and_writes_them(tmp_path: Path, capsys) -> No
     printed = capsys.readouterr().err
     assert "(jointly)" in printed and "input samples decoded for the joint delay and steering play search" in printed
     written = out.read_text()
-    for key in ("gnss.delay", "ekf.delay_uncertainty", "vehicle.steering_play"):
+    for key in ("gnss.delay", "ekf.delay_uncertainty", "vehicle.steering_play", "ekf.steering_play_uncertainty"):
         assert f"# estimated {key}:" in written, written
     tuned = load_params([str(out)])
     assert tuned.config.vehicle.steering_play > 0.0 and tuned.gnss.delay > 0.0

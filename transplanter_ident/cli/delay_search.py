@@ -216,6 +216,9 @@ def calibrate_timing(bags: Sequence[str], params: EstimatorParams, backend: Back
         found_play, params, decoded = estimate_bag_play(bags, params, backend, **search)
     if found_play is not None:
         estimated["vehicle.steering_play"] = (found_play.play, found_play.format(search["objective"]))
+        estimated.update(held_uncertainty("ekf.steering_play_uncertainty", found_play.std,
+                                          params.config.options.steering_play_uncertainty, 0.05, "the estimated play",
+                                          lambda v: f"{math.degrees(v):.3f} deg"))
     return params, decoded
 
 

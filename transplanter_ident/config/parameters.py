@@ -85,6 +85,7 @@ class FilterOptions:
     steering_scale_uncertainty: float = 0.0  # relative 1-sigma of the steering gain left out of vehicle.steering_scale
     yaw_inertia_uncertainty: float = 0.0  # relative 1-sigma of the yaw inertia left out of vehicle.iz
     relaxation_uncertainty: float = 0.0  # m, 1-sigma of the tire relaxation length left out of vehicle.relaxation_length
+    steering_play_uncertainty: float = 0.0  # rad, 1-sigma of the steering play left out of vehicle.steering_play
     speed_noise: bool = True  # the GNSS speed, the model's input, is noisy: its variance enters Q through dx/dvx
     noise_adaptation: bool = True  # R raised to what the innovations show (covariance matching), never lowered
     noise_memory: float = 60.0  # s, time constant of that measure
@@ -130,6 +131,7 @@ class FilterOptions:
                                                                                    "steering_scale_uncertainty",
                                                                                    "yaw_inertia_uncertainty",
                                                                                    "relaxation_uncertainty",
+                                                                                   "steering_play_uncertainty",
                                                                                    "change_offset_variance",
                                                                                    "saturation_prior",
                                                                                    "max_tire_utilisation",
@@ -222,6 +224,8 @@ class ValiditySettings:
     max_change_evidence: float = 0.5  # the directional change test's CUSUM past this fraction of its alarm level
     max_heading_sigmas: float = 100.0  # a heading misalignment this many std from 0 fails (100: off, the shift decides)
     max_heading_shift: float = 1.5  # the Cf or Cr shift the measured misalignment implies (lower 1-sigma), in std
+    max_steering_play_sigmas: float = 3.0  # a steering play left out, this many std from 0 (the filter's measure)
+    max_steering_play_shift: float = 1.5  # the Cf or Cr shift the measured play implies (lower 1-sigma), in std
 
     def __post_init__(self) -> None:
         check_fields(self, "validity", positive=("window", "max_rel_std", "nis_quantile_sigmas",
@@ -230,7 +234,8 @@ class ValiditySettings:
                                                  "max_delay_sigmas", "max_delay_shift", "max_relaxation_sigmas",
                                                  "max_relaxation_shift", "max_steering_gain_sigmas",
                                                  "max_steering_gain_shift", "max_drift_sigmas",
-                                                 "max_change_evidence", "max_heading_sigmas", "max_heading_shift"),
+                                                 "max_change_evidence", "max_heading_sigmas", "max_heading_shift",
+                                                 "max_steering_play_sigmas", "max_steering_play_shift"),
                      non_negative=("min_steering_std", "min_yaw_rate_std", "hold_on", "hold_off", "drift_window"))
         if isinstance(self.max_noise_factor, bool) or not (math.isfinite(self.max_noise_factor)
                                                            and self.max_noise_factor >= 1.0):

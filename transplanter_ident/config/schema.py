@@ -222,6 +222,10 @@ SCHEMA: tuple[Param, ...] = (
     _float("ekf.delay_uncertainty", 0.0, "s", "1-sigma of the GNSS timing error left after gnss.delay (a driver "
            "stamping on arrival: its latency's spread): the reported Cf, Cr std hold the bias it causes (~2 % per "
            "ms at 2 m/s; /diagnostics delay_sensitivity_per_ms); 0: off", 0.0, 1.0),
+    _float("ekf.steering_play_uncertainty", 0.0, "rad", "1-sigma of the steering linkage's play left after "
+           "vehicle.steering_play (tuner --estimate-steering-play prints its estimate's): the reported Cf, Cr std hold "
+           "the bias it causes (~90 % per degree at 2 m/s on a +-15 deg sine; /diagnostics "
+           "play_sensitivity_per_deg); 0: off", 0.0, 0.05),
     _float("ekf.steering_scale_uncertainty", 0.0, "", "relative 1-sigma of the steering sensor's gain left after "
            "vehicle.steering_scale (tuner --estimate-steering-scale writes its estimate's): the reported Cf, Cr std "
            "hold the bias it causes (~5-8 % per % at 2 m/s; /diagnostics scale_sensitivity_per_percent); 0: off",
@@ -311,6 +315,9 @@ SCHEMA: tuple[Param, ...] = (
                      "(100, the default: off; the stiffness hardly moves with it, ~0.2 % per degree at 2 m/s, so the "
                      "shift test decides)", "heading misalignment", "heading_misalignment_deg", "per radian", 100.0,
                      1.5),
+    *_measured_error("steering_play", "a steering play left out of vehicle.steering_play (or a GNSS delay or a "
+                     "tire relaxation, which look alike)", "steering play", "steering_play_estimate_deg", "per radian",
+                     3.0, 1.5),
     _float("validity.max_autocorrelation", 0.6, "", "lag-1 autocorrelation of the whitened vy innovation above "
            "which the filter is inconsistent (an unconfigured delay, GNSS errors correlated longer than "
            "ekf.noise_correlation's widening of R holds; 0.3 without it)",

@@ -42,6 +42,7 @@ from transplanter_ident.ekf.layout import (
     M_NOISE_SPAN_SECOND,
     M_NOISE_SPAN_VY,
     M_NOISE_VY,
+    M_PLAY_BIAS,
     M_RELAXATION_BIAS,
     M_SATURATION_INFORMATION,
     M_SATURATION_SCORE,
@@ -60,6 +61,7 @@ from transplanter_ident.ekf.layout import (
     S_MIN_FRICTION,
     S_NOISE_ADAPTATION,
     S_NOISE_MEMORY,
+    S_PLAY_UNCERTAINTY,
     S_RELAXATION_UNCERTAINTY,
     S_SATURATION_CORRECTION,
     S_SATURATION_MEMORY,
@@ -247,16 +249,16 @@ def propagate_inertia_bias(memo, settings, n, nd, h1, updated, ws):
 def held_bias_variance(memo, settings, i, unpinned):
     """The variance that state i's std holds for the biases of the model's known errors.
 
-    The tire's (the share ``unpinned`` of it), the delay's, the steering gain's, the yaw inertia's and the
-    relaxation length's at their configured 1-sigma (``ekf.delay_uncertainty``,
-    ``ekf.steering_scale_uncertainty``, ``ekf.yaw_inertia_uncertainty``, ``ekf.relaxation_uncertainty``).
+    The tire's (the share ``unpinned`` of it), and at their configured 1-sigma the delay's, the steering
+    gain's, the yaw inertia's, the relaxation length's and the steering play's (``ekf.*_uncertainty``).
     """
     tire = memo[M_BIAS + i]
     delay = memo[M_DELAY_BIAS + i] * settings[S_DELAY_UNCERTAINTY]
     scale = memo[M_SCALE_BIAS + i] * settings[S_SCALE_UNCERTAINTY]
     inertia = memo[M_INERTIA_BIAS + i] * settings[S_INERTIA_UNCERTAINTY]
     lag = memo[M_RELAXATION_BIAS + i] * settings[S_RELAXATION_UNCERTAINTY]
-    return unpinned * tire * tire + delay * delay + scale * scale + inertia * inertia + lag * lag
+    play = memo[M_PLAY_BIAS + i] * settings[S_PLAY_UNCERTAINTY]
+    return unpinned * tire * tire + delay * delay + scale * scale + inertia * inertia + lag * lag + play * play
 
 
 @inline_kernel

@@ -31,6 +31,10 @@ from transplanter_ident.ekf.layout import (
     O_NOISE_SCALE_VY,
     O_OFFSET,
     O_OFFSET_STD,
+    O_PLAY_ESTIMATE,
+    O_PLAY_ESTIMATE_STD,
+    O_PLAY_SENS_F,
+    O_PLAY_SENS_R,
     O_R,
     O_R_MODEL,
     O_RELAXATION,
@@ -118,6 +122,16 @@ class Estimate:
     def steering_gain_estimate(self) -> tuple[float, float]:
         """(relative, std) of the steering gain left out of vehicle.steering_scale (or Iz's look-alike; std 0: not yet)."""
         return self._pair(O_SCALE_ESTIMATE, O_SCALE_ESTIMATE_STD, 0.0)
+
+    @property
+    def steering_play_estimate(self) -> tuple[float, float]:
+        """(rad, std rad) of a steering play left out of vehicle.steering_play (play_signature.py; std 0: not yet)."""
+        return self._pair(O_PLAY_ESTIMATE, O_PLAY_ESTIMATE_STD, 0.0)
+
+    @property
+    def play_sensitivity(self) -> tuple[float, float]:
+        """Relative error of Cf, Cr per radian of steering play left out (play_signature.py)."""
+        return self._pair(O_PLAY_SENS_F, O_PLAY_SENS_R, 0.0)
 
     @property
     def saturation(self) -> tuple[float, float]:

@@ -73,6 +73,7 @@ from transplanter_ident.ekf.layout import (
     S_P0_THETA_F,
     S_P0_THETA_R,
     S_P0_VY,
+    S_PLAY_UNCERTAINTY,
     S_R_FROM_COVARIANCE,
     S_RELAXATION_UNCERTAINTY,
     S_SATURATION_CORRECTION,
@@ -156,6 +157,7 @@ class FilterArrays:
         settings[S_NOISE_CORRELATION] = 1.0 if options.noise_correlation else 0.0
         settings[S_DELAY_UNCERTAINTY] = options.delay_uncertainty
         settings[S_SCALE_UNCERTAINTY] = options.steering_scale_uncertainty
+        settings[S_PLAY_UNCERTAINTY] = options.steering_play_uncertainty
         settings[S_INERTIA_UNCERTAINTY] = options.yaw_inertia_uncertainty
         settings[S_RELAXATION_UNCERTAINTY] = options.relaxation_uncertainty
         settings[S_MEASURE_ERRORS] = 1.0

@@ -52,7 +52,6 @@ from transplanter_ident.ekf.adaptation import (
     propagate_tire_bias,
     saturation_share,
     score_model_errors,
-    score_signature,
 )
 from transplanter_ident.ekf.change import detect_change, normalised_update
 from transplanter_ident.ekf.heading_signature import propagate_heading_bias
@@ -64,17 +63,11 @@ from transplanter_ident.ekf.layout import (
     M_DELAY_SETTLED,
     M_DIVERGED,
     M_GATED,
-    M_HEADING_INFORMATION,
-    M_HEADING_SCORE,
     M_INITIALISED,
     M_LAG_ACTIVE,
     M_LAG_SPEED,
     M_NOISE_SPAN_VY,
     M_NOISE_VY,
-    M_RELAXATION_INFORMATION,
-    M_RELAXATION_SCORE,
-    M_SCALE_INFORMATION,
-    M_SCALE_SCORE,
     M_SHIFT,
     M_SPEED_CROSS,
     M_T_PREV,
@@ -117,8 +110,8 @@ from transplanter_ident.ekf.layout import (
     S_MEASURE_ERRORS,
     S_MIN_SPEED,
     S_P0_HEADING_OFFSET,
+    S_PLAY_UNCERTAINTY,
     S_RELAXATION_UNCERTAINTY,
-    S_SATURATION_MEMORY,
     S_SCALE_UNCERTAINTY,
     S_SPEED_NOISE,
     V_BACKUP_CHANGE,
@@ -135,7 +128,7 @@ from transplanter_ident.ekf.layout import (
     Z_VY,
     StepStatus,
 )
-from transplanter_ident.ekf.measure_outputs import write_measures, write_sensitivities
+from transplanter_ident.ekf.measure_outputs import score_measures, write_measures, write_sensitivities
 from transplanter_ident.ekf.measurement_row import (
     body_speed,
     predict_vy,
@@ -143,6 +136,7 @@ from transplanter_ident.ekf.measurement_row import (
     vy_row_times_column,
 )
 from transplanter_ident.ekf.noise_correlation import effective_noise, learn_noise
+from transplanter_ident.ekf.play_signature import propagate_play_bias
 from transplanter_ident.ekf.prediction import make_prediction
 from transplanter_ident.ekf.recovery import make_recovery
 from transplanter_ident.ekf.relaxation_signature import propagate_relaxation_bias, slip_deficits
@@ -372,11 +366,13 @@ def make_kernels(heading, lagged=False):
         tire0, tire1 = propagate_tire_bias(memo, vehicle, settings, n, nd, h1, updated, out[O_SLIP_F],
                                            out[O_SLIP_R], cf_now, cr_now, log_state, ws)
         g0, g1 = propagate_delay_bias(memo, n, nd, h1, updated, steering_rate, ws)
-        gain0 = gain1 = lag0 = head0 = head1 = 0.0
+        gain0 = gain1 = lag0 = head0 = head1 = play0 = play1 = 0.0
         if measuring and not settings[S_P0_HEADING_OFFSET] > 0.0:  # else h is a state
             head0, head1 = propagate_heading_bias(memo, n, nd, h1, updated, speed, ws)
         if measuring or settings[S_SCALE_UNCERTAINTY] > 0.0:
             gain0, gain1 = propagate_scale_bias(memo, n, nd, h1, updated, steering, ws)
+        if measuring or settings[S_PLAY_UNCERTAINTY] > 0.0:
+            play0, play1 = propagate_play_bias(memo, n, nd, h1, updated, steering_rate, ws)
         propagate_inertia_bias(memo, settings, n, nd, h1, updated, ws)
         if relaxing:
             lag0, _ = propagate_relaxation_bias(memo, n, nd, nb, h1, updated, vx, eps_f, eps_r, ws)
@@ -385,13 +381,9 @@ def make_kernels(heading, lagged=False):
             learn_noise(memo, settings, heading, t, dt, speed, e0, e1, hph00, hph01, hph11, r_noise[Z_VY],
                         r_noise[Z_SECOND], not heading_held)
             score_model_errors(memo, settings, dt, g0, g1, tire0, tire1, e0, e1, s00, s01, s11, det)
-        if updated and measuring:
-            score_signature(memo, M_RELAXATION_SCORE, M_RELAXATION_INFORMATION, settings[S_SATURATION_MEMORY], dt, lag0,
-                            0.0, e0, 0.0, s00, 0.0, 1.0, s00)  # vy alone (relaxation_signature.py)
-            score_signature(memo, M_SCALE_SCORE, M_SCALE_INFORMATION, settings[S_SATURATION_MEMORY], dt, gain0,
-                            gain1, e0, e1, s00, s01, s11, det)
-            score_signature(memo, M_HEADING_SCORE, M_HEADING_INFORMATION, settings[S_SATURATION_MEMORY], dt, head0,
-                            head1, e0, e1, s00, s01, s11, det)
+        if updated and measuring:  # the relaxation, gain, heading and play measures (measure_outputs.py)
+            score_measures(memo, settings, dt, lag0, gain0, gain1, head0, head1, play0, play1, e0, e1, s00, s01, s11,
+                           det)
         write_outputs(x, p, memo, settings, status, r_model, vy_model, out)
         return status
 

@@ -65,7 +65,8 @@ S_NOISE_CORRELATION = 43
 #: rad^2/s: the steering offset's Q density while a change alarm's raised density lasts (update.propagate_covariance)
 S_CHANGE_OFFSET_Q = 44
 S_P0_HEADING_OFFSET = 45  # rad^2: P0 of the heading's misalignment h (0: not estimated, recovery.py re-initialises to it)
-N_SETTINGS = 46
+S_PLAY_UNCERTAINTY = 46  # rad, 1-sigma of the steering play left out of vehicle.steering_play (play_signature.py)
+N_SETTINGS = 47
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6
@@ -97,7 +98,10 @@ O_HEADING_ESTIMATE, O_HEADING_ESTIMATE_STD, O_HEADING_SENS_F, O_HEADING_SENS_R =
 #: rad: the state h, the heading's misalignment (ekf.estimate_heading_offset; then the measure above is off), and its
 #: std (0, 0: not estimated)
 O_HEADING_OFFSET, O_HEADING_OFFSET_STD = 52, 53
-N_OUTPUTS = 54
+#: rad: a steering play left out of vehicle.steering_play as the innovations show it (std 0: none yet), and the
+#: relative error of Cf, Cr per radian of it (play_signature.py)
+O_PLAY_ESTIMATE, O_PLAY_ESTIMATE_STD, O_PLAY_SENS_F, O_PLAY_SENS_R = 54, 55, 56, 57
+N_OUTPUTS = 58
 
 # memo vector
 M_T_PREV, M_INITIALISED, M_GATED, M_CUSUM, M_ADAPT_UNTIL, M_DIVERGED = 0, 1, 2, 3, 4, 5
@@ -144,7 +148,11 @@ M_CORRELATION_LAST_T = M_CORRELATION_LAST + 2
 #: the online measure of that misalignment (adaptation.score_signature): score and information
 M_HEADING_BIAS = M_CORRELATION_LAST_T + 1
 M_HEADING_SCORE, M_HEADING_INFORMATION = M_HEADING_BIAS + MAX_STATES, M_HEADING_BIAS + MAX_STATES + 1
-N_MEMO = M_HEADING_INFORMATION + 1
+#: memo[M_PLAY_BIAS + i]: the bias of state i per radian of steering play left out (play_signature.py), then the
+#: online measure of that play (adaptation.score_signature): score and information
+M_PLAY_BIAS = M_HEADING_INFORMATION + 1
+M_PLAY_SCORE, M_PLAY_INFORMATION = M_PLAY_BIAS + MAX_STATES, M_PLAY_BIAS + MAX_STATES + 1
+N_MEMO = M_PLAY_INFORMATION + 1
 
 # the open-loop model's state: the filter's motion states and slip lags, [vy, r, psi, d_f, d_r] or [vy, r, d_f, d_r]
 N_MODEL = N_MOTION_HEADING + N_LAG

@@ -47,6 +47,9 @@ def convergence_report(node: str, estimate: Estimate | None, updates: int, limit
               ("steering_gain_estimate_percent", "{:+.2f} {:.2f}".format(*(100 * v for v in estimate.steering_gain_estimate))),
               ("scale_sensitivity_per_percent", "{:+.4f} {:+.4f}".format(*(0.01 * v for v in estimate.scale_sensitivity))),
               ("heading_misalignment_deg", "{:+.2f} {:.2f}".format(*map(math.degrees, estimate.heading_misalignment))),
+              ("steering_play_estimate_deg", "{:+.3f} {:.3f}".format(*map(math.degrees, estimate.steering_play_estimate))),
+              ("play_sensitivity_per_deg", "{:+.4f} {:+.4f}".format(*(math.radians(1.0) * v
+                                                                      for v in estimate.play_sensitivity))),
               ("change_evidence", f"{estimate.change_evidence:.2f}"))
     if converged:
         return HealthReport(name, OK, f"converged: Cf {cf:.0f} +- {100 * rel_f:.1f} %, "

@@ -31,6 +31,10 @@ from transplanter_ident.ekf.layout import (
     O_HEADING_ESTIMATE_STD,
     O_HEADING_SENS_F,
     O_HEADING_SENS_R,
+    O_PLAY_ESTIMATE,
+    O_PLAY_ESTIMATE_STD,
+    O_PLAY_SENS_F,
+    O_PLAY_SENS_R,
     O_RELAXATION,
     O_RELAXATION_SENS_F,
     O_RELAXATION_SENS_R,
@@ -113,6 +117,11 @@ MODEL_ERRORS = (
                lambda v, s: f"a heading {math.degrees(v):+.2f} +- {math.degrees(s):.2f} deg off the vehicle's axis "
                             "beyond vehicle.heading_offset (a steady lateral velocity in proportion to the speed)",
                "add it to vehicle.heading_offset (the antenna baseline's yaw from the vehicle x axis)"),
+    ModelError("steering_play", (O_PLAY_ESTIMATE, O_PLAY_ESTIMATE_STD, O_PLAY_SENS_F, O_PLAY_SENS_R), False,
+               lambda v, s: f"a steering play of {math.degrees(v):+.3f} +- {math.degrees(s):.3f} deg not in "
+                            "vehicle.steering_play (or a GNSS delay or a tire relaxation, which look alike; the "
+                            "stiffness moves ~90 % per degree)",
+               "set vehicle.steering_play (the steering linkage's free travel), or tuner --estimate-steering-play"),
 )
 
 
