@@ -98,6 +98,22 @@ def run_command(name: str, *args: object) -> subprocess.CompletedProcess:
                           env=env, cwd=root)
 
 
+#: the tuner's flags for a quick Q/R search in the calibration tests (the calibration is what they check)
+QUICK_TUNE = ("--particles", "4", "--iterations", "1", "--seed", "3", "--jobs", "1", "--no-epoch-cache",
+              "--no-leave-one-out")
+
+
+def replayed_errors(bag: object, params_file: object, capsys: object) -> tuple[tuple[float, float], tuple[float, float]]:
+    """``replay``'s final Cf, Cr errors (%) of a simulated bag: (with ``params_file``, without it)."""
+    from transplanter_ident.cli import replay
+
+    out = []
+    for extra in (["--params-file", str(params_file)], []):
+        assert replay.main([str(bag), *extra]) == 0
+        out.append(final_errors(capsys.readouterr().out))
+    return out[0], out[1]
+
+
 def final_errors(text: str) -> tuple[float, float]:
     """The final Cf, Cr errors (%) that ``replay`` prints against a simulated bag's truth."""
     match = re.search(r"final Cf ([-+\d.]+) %, Cr ([-+\d.]+) %", text)

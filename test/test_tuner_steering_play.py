@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from drives import sine_drive
-from helpers import final_errors, sim_samples
+from helpers import QUICK_TUNE, replayed_errors, sim_samples
 
-from transplanter_ident.cli import replay, tuner
+from transplanter_ident.cli import tuner
 from transplanter_ident.config.params_file import load_params
 from transplanter_ident.sim.simulator import simulate
 from transplanter_ident.tuning.delay import delay_objective, estimate_delay
@@ -68,9 +68,7 @@ def test_cli_writes_the_play_and_replay_loads_it(tmp_path: Path, capsys) -> None
         bags.append(tmp_path / f"play{seed}")
         write_sim_bag(simulate(sine_drive(seed, steering_play=play)), bags[-1])
     out = tmp_path / "tuned.yaml"
-    assert tuner.main([*map(str, bags), "-o", str(out), "--estimate-steering-play", "--particles", "4",
-                       "--iterations", "1", "--seed", "3", "--jobs", "1", "--no-epoch-cache",
-                       "--no-leave-one-out"]) == 0
+    assert tuner.main([*map(str, bags), "-o", str(out), "--estimate-steering-play", *QUICK_TUNE]) == 0
     printed = capsys.readouterr()
     assert "vehicle.steering_play:" in printed.err and "# estimated vehicle.steering_play:" in out.read_text()
     tuned = load_params([str(out)]).config
@@ -79,10 +77,7 @@ def test_cli_writes_the_play_and_replay_loads_it(tmp_path: Path, capsys) -> None
     assert 0.0001 <= tuned.options.steering_play_uncertainty <= 0.002
     assert abs(tuned.vehicle.steering_play - play) <= 3.0 * tuned.options.steering_play_uncertainty
 
-    assert replay.main([str(bags[0])]) == 0
-    unset = final_errors(capsys.readouterr().out)
-    assert replay.main([str(bags[0]), "--params-file", str(out)]) == 0
-    calibrated = final_errors(capsys.readouterr().out)
+    calibrated, unset = replayed_errors(bags[0], out, capsys)
     assert max(map(abs, calibrated)) < 0.3 * max(map(abs, unset)), (calibrated, unset)
 
 
@@ -133,9 +128,8 @@ def test_cli_searches_both_jointly_and_writes_them(tmp_path: Path, capsys) -> No
         bags.append(tmp_path / f"both{seed}")
         write_sim_bag(simulate(sine_drive(seed, duration=60.0, steering_play=0.005, gnss_delay=0.02)), bags[-1])
     out = tmp_path / "tuned.yaml"
-    assert tuner.main([*map(str, bags), "-o", str(out), "--estimate-delay", "--estimate-steering-play", "--particles",
-                       "4", "--iterations", "1", "--seed", "3", "--jobs", "1", "--no-epoch-cache",
-                       "--no-leave-one-out"]) == 0
+    assert tuner.main([*map(str, bags), "-o", str(out), "--estimate-delay", "--estimate-steering-play",
+                       *QUICK_TUNE]) == 0
     printed = capsys.readouterr().err
     assert "(jointly)" in printed and "input samples decoded for the joint delay and steering play search" in printed
     written = out.read_text()
@@ -143,8 +137,5 @@ def test_cli_searches_both_jointly_and_writes_them(tmp_path: Path, capsys) -> No
         assert f"# estimated {key}:" in written, written
     tuned = load_params([str(out)])
     assert tuned.config.vehicle.steering_play > 0.0 and tuned.gnss.delay > 0.0
-    assert replay.main([str(bags[0])]) == 0
-    unset = final_errors(capsys.readouterr().out)
-    assert replay.main([str(bags[0]), "--params-file", str(out)]) == 0
-    calibrated = final_errors(capsys.readouterr().out)
+    calibrated, unset = replayed_errors(bags[0], out, capsys)
     assert max(map(abs, calibrated)) < 0.5 * max(map(abs, unset)), (calibrated, unset)

@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from drives import sine_drive
-from helpers import final_errors, sim_samples
+from helpers import QUICK_TUNE, replayed_errors, sim_samples
 from test_validity import epochs_of
 
-from transplanter_ident.cli import replay, tuner
+from transplanter_ident.cli import tuner
 from transplanter_ident.config.parameters import EstimatorConfig
 from transplanter_ident.config.params_file import EstimatorParams, load_params
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
@@ -97,9 +97,7 @@ def test_cli_writes_the_scale_and_replay_loads_it(tmp_path: Path, capsys) -> Non
         bags.append(tmp_path / f"high{seed}")
         write_sim_bag(simulate(replace(sine_drive(seed), steering_scale=1.02)), bags[-1])
     out = tmp_path / "tuned.yaml"
-    assert tuner.main([*map(str, bags), "-o", str(out), "--estimate-steering-scale", "--particles", "4",
-                       "--iterations", "1", "--seed", "3", "--jobs", "1", "--no-epoch-cache",
-                       "--no-leave-one-out"]) == 0
+    assert tuner.main([*map(str, bags), "-o", str(out), "--estimate-steering-scale", *QUICK_TUNE]) == 0
     printed = capsys.readouterr()
     assert "estimated vehicle.steering_scale:" in printed.out and "# estimated vehicle.steering_scale:" in out.read_text()
     assert "add --estimate-yaw-inertia" in printed.err  # vehicle.iz is m lf lr here
@@ -110,10 +108,7 @@ def test_cli_writes_the_scale_and_replay_loads_it(tmp_path: Path, capsys) -> Non
     assert 0.0003 <= uncertainty <= 0.01 and "# estimated ekf.steering_scale_uncertainty:" in out.read_text()
     assert abs(tuned.vehicle.steering_scale * 1.02 - 1.0) <= 3.0 * uncertainty
 
-    assert replay.main([str(bags[0])]) == 0
-    unset = final_errors(capsys.readouterr().out)
-    assert replay.main([str(bags[0]), "--params-file", str(out)]) == 0
-    calibrated = final_errors(capsys.readouterr().out)
+    calibrated, unset = replayed_errors(bags[0], out, capsys)
     assert max(map(abs, calibrated)) < 0.5 * max(map(abs, unset)), (calibrated, unset)
 
 

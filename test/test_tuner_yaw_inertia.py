@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from drives import sine_drive
-from helpers import final_errors
+from helpers import replayed_errors
 from test_validity import epochs_of
 
-from transplanter_ident.cli import replay, tuner
+from transplanter_ident.cli import tuner
 from transplanter_ident.config.parameters import EstimatorConfig, VehicleParams
 from transplanter_ident.config.params_file import load_params
 from transplanter_ident.sim.simulator import simulate
@@ -103,10 +103,7 @@ def test_cli_writes_the_yaw_inertia_and_replay_with_it_is_right(tmp_path: Path, 
     assert 0.005 <= uncertainty <= 0.06 and "# estimated ekf.yaw_inertia_uncertainty:" in out.read_text()
     assert abs(error) <= 3.0 * uncertainty
 
-    assert replay.main([str(paths[2])]) == 0
-    unset = final_errors(capsys.readouterr().out)
-    assert replay.main([str(paths[2]), "--params-file", str(out)]) == 0
-    calibrated = final_errors(capsys.readouterr().out)
+    calibrated, unset = replayed_errors(paths[2], out, capsys)
     assert max(map(abs, calibrated)) < 0.5 * max(map(abs, unset)), (calibrated, unset)
 
 
