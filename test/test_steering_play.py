@@ -211,3 +211,19 @@ def test_the_published_sensitivity_is_the_bias_and_the_uncertainty_covers_it() -
     gap = np.abs(np.mean(errors, axis=0) - np.mean(predicted, axis=0))
     assert np.all(gap <= 0.015), (np.mean(errors, axis=0), np.mean(predicted, axis=0))
     assert np.all(np.mean(covered, axis=0) >= 0.95), covered
+
+
+def test_diagnostics_and_replay_show_the_play_measure() -> None:
+    """/diagnostics "convergence" and replay's model errors line show the last epoch's play measure as it is."""
+    from transplanter_ident.ekf.estimate import Estimate
+    from transplanter_ident.evaluation.convergence_report import convergence_report, model_errors_line
+
+    run = run_drive(simulate(sine_drive(0, duration=60.0, steering_play=DEG(0.3))), EstimatorConfig())
+    estimate = Estimate.from_row(float(run.t[-1]), run.outputs[-1])
+    value, std = (math.degrees(v) for v in run.outputs[-1, [O_PLAY_ESTIMATE, O_PLAY_ESTIMATE_STD]])
+    assert std > 0.0 and value > 0.1  # the 0.3 deg play, measured
+    values = dict(convergence_report("estimator", estimate, updates=len(run.t), limit=0.05).values)
+    assert values["steering_play_estimate_deg"] == f"{value:+.3f} {std:.3f}"
+    front = float(values["play_sensitivity_per_deg"].split()[0])
+    assert front == pytest.approx(DEG(1.0) * run.outputs[-1, O_PLAY_SENS_F], abs=1e-4) and front < 0.0
+    assert f"vehicle.steering_play {value:+.3f} +- {std:.3f} deg" in model_errors_line(estimate, 0.0)

@@ -8,7 +8,7 @@ how far Cf and Cr move per ms of GNSS delay left out of ``gnss.delay`` (relative
 that delay as the innovations show it (ms, and its std; std 0: not measured yet); likewise a tire
 relaxation length left out of ``vehicle.relaxation_length`` (m) and Cf, Cr's move per cm of it, and
 a steering gain left out of ``vehicle.steering_scale`` (%; a yaw inertia off ``vehicle.iz`` looks alike).
-:func:`model_errors_line` is replay's summary of the three measures.
+:func:`model_errors_line` is replay's summary of the measures.
 """
 
 from __future__ import annotations
@@ -61,15 +61,17 @@ def convergence_report(node: str, estimate: Estimate | None, updates: int, limit
 
 
 def model_errors_line(estimate: Estimate, relaxation_length: float) -> str:
-    """What the innovations show of the GNSS delay, the tire relaxation, the steering gain and the heading left out (replay)."""
+    """What the innovations show of the GNSS delay, the tire relaxation, the steering gain, the heading and the play left out (replay)."""
     delay, delay_std = estimate.delay_estimate
     lag, lag_std = estimate.relaxation_estimate
     gain, gain_std = estimate.steering_gain_estimate
     heading, heading_std = estimate.heading_misalignment
+    play, play_std = estimate.steering_play_estimate
     if not (delay_std > 0.0 or lag_std > 0.0):
         return "Model errors the innovations show: not measured (too few updates)"
     return (f"Model errors the innovations show (final): GNSS delay not in gnss.delay {1e3 * delay:+.1f} +- "
             f"{1e3 * delay_std:.1f} ms; tire relaxation beyond vehicle.relaxation_length ({relaxation_length:g} m) "
             f"{lag:+.3f} +- {lag_std:.3f} m; steering gain off vehicle.steering_scale (or Iz off vehicle.iz) "
             f"{100 * gain:+.2f} +- {100 * gain_std:.2f} %; heading off the vehicle beyond vehicle.heading_offset "
-            f"{math.degrees(heading):+.2f} +- {math.degrees(heading_std):.2f} deg")
+            f"{math.degrees(heading):+.2f} +- {math.degrees(heading_std):.2f} deg; steering play beyond "
+            f"vehicle.steering_play {math.degrees(play):+.3f} +- {math.degrees(play_std):.3f} deg")
