@@ -271,6 +271,7 @@ def forget_motion_bias(memo, nd):
         memo[M_INERTIA_BIAS + i] = 0.0
         memo[M_RELAXATION_BIAS + i] = 0.0
         memo[M_HEADING_BIAS + i] = 0.0
+        memo[M_PLAY_BIAS + i] = 0.0
 
 
 @inline_kernel

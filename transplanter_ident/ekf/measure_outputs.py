@@ -1,11 +1,12 @@
 """The step's measures of what the configuration left out, as output columns (DESIGN.md section 7).
 
 :func:`score_measures` fits each updated epoch's innovations to the signatures of the constant errors
-(:func:`.adaptation.score_signature`). Every epoch, from what the step remembers (memo): the model errors
-the innovations show (:func:`.adaptation.signature_estimate`: a GNSS delay, the tires' saturation, a
-relaxation length, a steering gain, a heading misalignment, a steering play), the factors on R and the innovations' correlation in time,
-and the directional change test's evidence; and (:func:`write_sensitivities`, with Cf and Cr,
-kernels.write_outputs) the stiffness's own sensitivity to each error.
+(:func:`.adaptation.score_signature`). Every epoch, from what the step remembers (memo): the model
+errors the innovations show (:func:`.adaptation.signature_estimate`: a GNSS delay, the tires'
+saturation, a relaxation length, a steering gain, a heading misalignment, a steering play), the factors
+on R and the innovations' correlation in time, and the directional change test's evidence; and
+(:func:`write_sensitivities`, with Cf and Cr, kernels.write_outputs) the stiffness's own sensitivity to
+each error.
 """
 
 from __future__ import annotations
