@@ -91,12 +91,12 @@ class PlayEstimate:
     def format(self, objective: str = "objective") -> str:
         """One line: the estimate (rad and deg), its objective, and the objective with no play."""
         at_zero = next((v for p, v in self.points if abs(p) < 1e-12), math.nan)
+        none = f"; {at_zero:.6g} with none" if math.isfinite(at_zero) else ""
         spread = f" +- {self.std:.2g}" if math.isfinite(self.std) else ""
         edge = (f"; at the edge of the plays searched, [{self.bounds[0]:g}, {self.bounds[1]:g}] rad: it may lie "
                 "beyond them, take up the linkage's play" if self.at_edge else "")
         return (f"vehicle.steering_play: {self.play:.4g}{spread} rad ({math.degrees(self.play):.3f} deg; {objective} "
-                f"{self.fitness:.6g} at the starting Q/R; {at_zero:.6g} with none; {len(self.points)} plays "
-                f"evaluated{edge})")
+                f"{self.fitness:.6g} at the starting Q/R{none}; {len(self.points)} plays evaluated{edge})")
 
 
 def estimate_steering_play(scores: BagScores, objective: str, low: float = PLAY_RANGE[0],
@@ -142,24 +142,26 @@ def estimate_delay_and_play(scores: PairScores, objective: str, start: tuple[flo
     is at an edge of the box).
     """
     epochs: dict[tuple[float, float], int] = {}
+    seen: dict[tuple[float, float], float] = {}  # every pair evaluated: the estimates' points, by coordinate
 
     def pooled_objective(pairs: Sequence[tuple[float, float]]) -> list[float]:
         per_pair = scores(pairs)
         epochs.update((pair, sum(n for _, n in bags)) for pair, bags in zip(pairs, per_pair, strict=True))
-        return [pooled(bags) for bags in per_pair]
+        values = [pooled(bags) for bags in per_pair]
+        seen.update(zip(pairs, values, strict=True))
+        return values
 
     box = Box((delay_range[0], play_range[0]), (delay_range[1], play_range[1]), ("gnss.delay", "steering_play"))
     found = minimize_cmaes(lambda points: pooled_objective([(float(d), float(p)) for d, p in points]), box,
                            JOINT_SEARCH, seed, initial=[start])
     best = (float(found.position[0]), float(found.position[1]))
-    delay = DelayEstimate(best[0], found.fitness, ((best[0], found.fitness),), bounds=delay_range)
-    play = PlayEstimate(best[1], found.fitness, ((best[1], found.fitness),), bounds=play_range)
-    if objective != "nll":
-        return delay, play
-    if delay.at_edge or play.at_edge:
-        return replace(delay, std=math.inf), replace(play, std=math.inf)
-    std = _hessian_std(pooled_objective, best, found.fitness, epochs[best])
-    return replace(delay, std=std[0]), replace(play, std=std[1])
+    std = (math.nan, math.nan)
+    if objective == "nll":  # a likelihood: its curvature is the estimates' information
+        edge = at_range_edge(best[0], delay_range) or at_range_edge(best[1], play_range)
+        std = (math.inf, math.inf) if edge else _hessian_std(pooled_objective, best, found.fitness, epochs[best])
+    points = sorted(seen.items())
+    return (DelayEstimate(best[0], found.fitness, tuple((d, v) for (d, _), v in points), std[0], delay_range),
+            PlayEstimate(best[1], found.fitness, tuple((p, v) for (_, p), v in points), std[1], play_range))
 
 
 def _hessian_std(pairs: Callable[[Sequence[tuple[float, float]]], list[float]], best: tuple[float, float],
