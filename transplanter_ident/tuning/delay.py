@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -180,22 +181,49 @@ def serial_scores(bags: Sequence[Sequence[Sample]], params: EstimatorParams, obj
                            for d in delays]
 
 
+class PooledScores:
+    """The bags' :func:`pooled` objective of a batch of candidates: delays, plays or (delay, play) pairs.
+
+    ``scores``: per candidate, every bag's (value, epochs). Each candidate's epoch count (``epochs``) and
+    value (``values``) are kept, for the NLL's curvature.
+    """
+
+    def __init__(self, scores: Callable[[Sequence[Any]], Sequence[Sequence[tuple[float, int]]]]) -> None:
+        self.scores = scores
+        self.epochs: dict[Any, int] = {}
+        self.values: dict[Any, float] = {}
+
+    def __call__(self, candidates: Sequence[Any]) -> list[float]:
+        per_candidate = self.scores(candidates)
+        values = [pooled(bags) for bags in per_candidate]
+        for candidate, bags, value in zip(candidates, per_candidate, values, strict=True):
+            self.epochs[candidate] = sum(n for _, n in bags)
+            self.values[candidate] = value
+        return values
+
+
+def grid_estimate(scores: BagScores, objective: str, bounds: tuple[float, float], coarse: float, fine: float,
+                  window: float, what: str) -> tuple[float, float, tuple[tuple[float, float], ...], float]:
+    """(best, its value, every (point, value), std): :func:`grid_search` of the bags' pooled objective (ties: 0).
+
+    The std (:func:`profile_std` within ``window``) only with ``nll``, a likelihood (else NaN); +inf at an edge of
+    ``bounds``: the minimum may lie beyond them, and nothing within them pins it.
+    """
+    pooled_objective = PooledScores(scores)
+    best, fitness, points = grid_search(pooled_objective, *bounds, coarse, fine, what, prefer=0.0)
+    if objective != "nll":
+        return best, fitness, points, math.nan
+    if at_range_edge(best, bounds):
+        return best, fitness, points, math.inf
+    return best, fitness, points, profile_std(points, best, pooled_objective.epochs[best], window, fine)
+
+
 def estimate_delay(scores: BagScores, objective: str, low: float = DELAY_RANGE[0],
                    high: float = DELAY_RANGE[1]) -> DelayEstimate:
-    """:func:`search_delay` on the bags' :func:`pooled` objective; with ``nll`` also its :func:`profile_std`."""
-    epochs: dict[float, int] = {}  # delay -> the bags' epochs at it
-
-    def pooled_objective(delays: Sequence[float]) -> list[float]:
-        per_delay = scores(delays)
-        epochs.update((d, sum(n for _, n in bags)) for d, bags in zip(delays, per_delay, strict=True))
-        return [pooled(bags) for bags in per_delay]
-
-    estimate = search_delay(pooled_objective, low, high)
-    if objective != "nll":  # only a likelihood's curvature is the estimate's information
-        return estimate
-    if estimate.at_edge:  # the minimum may lie beyond the range: nothing within it pins the delay
-        return replace(estimate, std=math.inf)
-    return replace(estimate, std=profile_std(estimate.points, estimate.delay, epochs[estimate.delay]))
+    """:func:`search_delay`'s grids on the bags' :func:`pooled` objective; with ``nll`` also its :func:`profile_std`."""
+    best, fitness, points, std = grid_estimate(scores, objective, (low, high), COARSE_STEP, FINE_STEP,
+                                               CURVATURE_WINDOW, "delay")
+    return DelayEstimate(best, fitness, points, std, (low, high))
 
 
 def grid_points(low: float, high: float, step: float) -> list[float]:

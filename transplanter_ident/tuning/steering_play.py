@@ -38,12 +38,11 @@ from transplanter_ident.tuning.delay import (
     DELAY_RANGE,
     BagScores,
     DelayEstimate,
+    PooledScores,
     Sample,
     at_range_edge,
     delay_objective,
-    grid_search,
-    pooled,
-    profile_std,
+    grid_estimate,
     with_delay,
 )
 
@@ -102,21 +101,8 @@ class PlayEstimate:
 def estimate_steering_play(scores: BagScores, objective: str, low: float = PLAY_RANGE[0],
                            high: float = PLAY_RANGE[1]) -> PlayEstimate:
     """The play minimising the bags' pooled objective (``scores``: per play, every bag's (value, epochs)); its std."""
-    epochs: dict[float, int] = {}
-
-    def pooled_objective(plays: Sequence[float]) -> list[float]:
-        per_play = scores(plays)
-        epochs.update((p, sum(n for _, n in bags)) for p, bags in zip(plays, per_play, strict=True))
-        return [pooled(bags) for bags in per_play]
-
-    best, fitness, points = grid_search(pooled_objective, low, high, COARSE_STEP, FINE_STEP, "steering play",
-                                        prefer=0.0)
-    estimate = PlayEstimate(best, fitness, points, bounds=(low, high))
-    if objective != "nll":
-        return estimate
-    if estimate.at_edge:
-        return replace(estimate, std=math.inf)
-    return replace(estimate, std=profile_std(points, best, epochs[best], CURVATURE_WINDOW, FINE_STEP))
+    return PlayEstimate(*grid_estimate(scores, objective, (low, high), COARSE_STEP, FINE_STEP, CURVATURE_WINDOW,
+                                       "steering play"), (low, high))
 
 
 #: the joint search: CMA-ES population and generations after the first (6 x 50 = 300 evaluations), step size
@@ -141,16 +127,7 @@ def estimate_delay_and_play(scores: PairScores, objective: str, start: tuple[flo
     Hessian of the NLL summed over the bags' epochs (+inf where it is not positive definite or the minimum
     is at an edge of the box).
     """
-    epochs: dict[tuple[float, float], int] = {}
-    seen: dict[tuple[float, float], float] = {}  # every pair evaluated: the estimates' points, by coordinate
-
-    def pooled_objective(pairs: Sequence[tuple[float, float]]) -> list[float]:
-        per_pair = scores(pairs)
-        epochs.update((pair, sum(n for _, n in bags)) for pair, bags in zip(pairs, per_pair, strict=True))
-        values = [pooled(bags) for bags in per_pair]
-        seen.update(zip(pairs, values, strict=True))
-        return values
-
+    pooled_objective = PooledScores(scores)
     box = Box((delay_range[0], play_range[0]), (delay_range[1], play_range[1]), ("gnss.delay", "steering_play"))
     found = minimize_cmaes(lambda points: pooled_objective([(float(d), float(p)) for d, p in points]), box,
                            JOINT_SEARCH, seed, initial=[start])
@@ -158,8 +135,9 @@ def estimate_delay_and_play(scores: PairScores, objective: str, start: tuple[flo
     std = (math.nan, math.nan)
     if objective == "nll":  # a likelihood: its curvature is the estimates' information
         edge = at_range_edge(best[0], delay_range) or at_range_edge(best[1], play_range)
-        std = (math.inf, math.inf) if edge else _hessian_std(pooled_objective, best, found.fitness, epochs[best])
-    points = sorted(seen.items())
+        std = (math.inf, math.inf) if edge else _hessian_std(pooled_objective, best, found.fitness,
+                                                             pooled_objective.epochs[best])
+    points = sorted(pooled_objective.values.items())  # every pair evaluated: the estimates' points, by coordinate
     return (DelayEstimate(best[0], found.fitness, tuple((d, v) for (d, _), v in points), std[0], delay_range),
             PlayEstimate(best[1], found.fitness, tuple((p, v) for (_, p), v in points), std[1], play_range))
 
