@@ -44,6 +44,7 @@ from transplanter_ident.epochs import checks
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler
 from transplanter_ident.epochs.batch import BatchResult, SampleStream
 from transplanter_ident.epochs.epoch import EpochArrays, Rejection
+from transplanter_ident.epochs.settings import input_roles
 from transplanter_ident.evaluation.windows import reason_class
 from transplanter_ident.files import Progress, one_line
 
@@ -150,7 +151,7 @@ def _select(path: str | Path, reader: Reader, params: Any) -> _Table:
         raise BagError(f"{path}: the bag is empty (no messages)")
     topics = _topic_types(reader)
     table: _Table = {}
-    for role in ROLES:
+    for role in input_roles(params):
         topic = getattr(params.topics, role)
         conns = topics.get(topic)
         if not conns:

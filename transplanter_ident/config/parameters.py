@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 DISCRETIZATIONS = ("exact", "euler")
 NOISE_UNITS = ("per_second", "per_step")
 STIFFNESS_STATES = ("log", "linear")
-MEASUREMENTS = ("heading", "yaw_rate")
+MEASUREMENTS = ("heading", "yaw_rate", "course")
 
 
 #: where the steering sensor's angle is taken: the single-track angle, or one front wheel's (Ackermann)
@@ -148,6 +148,21 @@ class FilterOptions:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"ekf.{name} must be > 0, got {value!r}")
+
+    @property
+    def heading_state(self) -> bool:
+        """Whether the filter carries a heading state (``heading``, or ``course``: the antenna's course over ground)."""
+        return self.measurement in ("heading", "course")
+
+    @property
+    def course(self) -> bool:
+        """A single antenna: the heading state is the antenna's course, measured from the velocity's direction."""
+        return self.measurement == "course"
+
+    @property
+    def heading_offset_estimated(self) -> bool:
+        """The heading's misalignment as a state: a dual-antenna heading only (a course has no misalignment)."""
+        return self.estimate_heading_offset and self.measurement == "heading"
 
     @property
     def noise_rate_scale(self) -> float:

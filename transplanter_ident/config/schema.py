@@ -153,7 +153,9 @@ SCHEMA: tuple[Param, ...] = (
     # filter structure (DESIGN.md section 1)
     _str("ekf.discretization", "exact", "exact (zero-order hold) or euler (paper eq. 10)", DISCRETIZATIONS),
     _str("ekf.stiffness_state", "log", "stiffness in the state as log or linear (paper)", STIFFNESS_STATES),
-    _str("ekf.measurement", "heading", "heading (z = [vy, psi]) or yaw_rate (paper, z = [vy, r])", MEASUREMENTS),
+    _str("ekf.measurement", "heading", "heading (z = [vy, psi]), yaw_rate (paper, z = [vy, r]) or course (a single "
+         "antenna: z = the velocity's direction, the heading topic unused; R's vy entry is the velocity's per-axis "
+         "variance, the heading entry unused)", MEASUREMENTS),
     # noise (settable at run time; the initial values are used from the next ~/reset)
     _floats("ekf.process_noise", (1.0e-4, 1.0e-4, 1.5e-5, 1.5e-5), "state units^2/s",
             "diag Q for vy, r, Cf, Cr as a spectral density (each GNSS interval dt adds Q dt), in the units "

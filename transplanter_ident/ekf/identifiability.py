@@ -81,7 +81,7 @@ def window_information(config: EstimatorConfig, rows: np.ndarray, theta: np.ndar
     information = np.zeros((N_INFORMATION, N_INFORMATION))
     r_noise = np.array(config.noise.measurement_noise, dtype=np.float64) * np.maximum(noise_factors, 1.0)
     used = output_error_information(np.ascontiguousarray(rows), np.asarray(theta, dtype=np.float64),
-                                    vehicle_array(config.vehicle), config.vehicle.antenna_x, r_noise, segment,
+                                    vehicle_array(config.vehicle, options.course), config.vehicle.antenna_x, r_noise, segment,
                                     options.min_speed, options.max_interval,
                                     EXACT if options.discretization == "exact" else EULER,
                                     options.measurement_noise_from_covariance, work_buffer(), information)
@@ -129,7 +129,7 @@ class IdentifiabilityGuard:
     def __init__(self, config: EstimatorConfig, initial_state: np.ndarray, initial_covariance: np.ndarray,
                  log_state: bool) -> None:
         options = config.options
-        self.enabled = options.identifiability_check and options.measurement == "heading"
+        self.enabled = options.identifiability_check and options.heading_state
         self._config = config
         self._prior = _relative_prior(initial_state, initial_covariance, log_state)
         self.reset()

@@ -14,6 +14,9 @@ filter's full R of each epoch (:mod:`.kernels`: the body-frame vy error holds -v
 
     I = sum_k H S_k^T R_k^-1 H S_k      (3 x 3, over ln Cf, ln Cr, b)
 
+With a single antenna (``ekf.measurement: course``, the vehicle array's VEH_COURSE) psi is the antenna's
+course and z that course alone, of variance R_vy / vx^2.
+
 Its inverse is the Cramér-Rao bound of an unbiased estimate from these data at that theta.
 """
 
@@ -38,6 +41,7 @@ from transplanter_ident.ekf.layout import (
     I_OFFSET,
     N_INFORMATION,
     N_MOTION_HEADING,
+    VEH_COURSE,
     W_DE_F,
     W_DE_R,
     W_E,
@@ -47,6 +51,7 @@ from transplanter_ident.ekf.layout import (
     Z_SECOND,
     Z_VY,
 )
+from transplanter_ident.ekf.measurement_row import course_variance
 from transplanter_ident.ekf.model import discretize_heading
 from transplanter_ident.ekf.sequence import epoch_measurement_noise, innovation_covariance
 from transplanter_ident.jit import entry_kernel
@@ -62,7 +67,7 @@ def output_error_information(epochs, theta, vehicle, antenna_x, r_noise, segment
     """Add the Fisher information of ``epochs`` (kernel columns E_*) at ``theta`` to ``information`` (3, 3).
 
     theta : (3,)  ln Cf, ln Cr, steering offset b (rad)
-    vehicle : (4,)  model.vehicle_array
+    vehicle : (N_VEHICLE,)  model.vehicle_array (VEH_COURSE: a course measured)
     r_noise : (2,)  diag R of vy (m/s)^2 and psi rad^2
     from_covariance : bool  R per epoch as the filter takes it with ``ekf.measurement_noise_from_covariance``:
         the variances the epoch reports (E_VAR_VY, E_VAR_PSI) where larger than ``r_noise``
@@ -70,6 +75,7 @@ def output_error_information(epochs, theta, vehicle, antenna_x, r_noise, segment
     Returns the number of epochs that contributed.
     """
     nd = N_MOTION_HEADING
+    course = vehicle[VEH_COURSE] > 0.5  # psi is the antenna's course (model.course_row), the one measurement
     cf, cr, offset = math.exp(theta[I_LN_CF]), math.exp(theta[I_LN_CR]), theta[I_OFFSET]
     x = np.zeros(nd)
     new_x = np.zeros(nd)
@@ -113,14 +119,16 @@ def output_error_information(epochs, theta, vehicle, antenna_x, r_noise, segment
         # R of z = [vy_antenna, psi] as the filter takes it, inverted
         epoch_measurement_noise(r_noise, from_covariance, True, epochs[k, E_VAR_VY], epochs[k, E_VAR_PSI], 0.0,
                                 r_epoch)
-        s00, s01, s11 = innovation_covariance(True, 0.0, 0.0, 0.0, r_epoch[Z_VY], r_epoch[Z_SECOND], speed)
+        second = course_variance(r_epoch[Z_VY], speed) if course else r_epoch[Z_SECOND]
+        s00, s01, s11 = innovation_covariance(not course, 0.0, 0.0, 0.0, r_epoch[Z_VY], second, speed)
         det = s00 * s11 - s01 * s01
         i00, i01, i11 = s11 / det, -s01 / det, s00 / det
+        vy_weight = 0.0 if course else 1.0  # a course measures no vy (measurement_row.predict_vy)
         for p in range(N_INFORMATION):
-            h0p = sens[X_VY, p] + antenna_x * sens[X_R, p]
+            h0p = vy_weight * (sens[X_VY, p] + antenna_x * sens[X_R, p])
             h1p = sens[X_PSI, p]
             for q in range(N_INFORMATION):
-                h0q = sens[X_VY, q] + antenna_x * sens[X_R, q]
+                h0q = vy_weight * (sens[X_VY, q] + antenna_x * sens[X_R, q])
                 h1q = sens[X_PSI, q]
                 information[p, q] += h0p * (i00 * h0q + i01 * h1q) + h1p * (i01 * h0q + i11 * h1q)
         used += 1

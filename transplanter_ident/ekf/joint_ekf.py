@@ -41,6 +41,7 @@ from transplanter_ident.ekf.layout import (
     S_CHANGE_HOLD,
     S_CHANGE_OFFSET_Q,
     S_CHANGE_Q,
+    S_COURSE,
     S_CUSUM_CAP,
     S_CUSUM_SCALE,
     S_CUSUM_THRESHOLD,
@@ -117,12 +118,13 @@ class FilterArrays:
         """Translate the parameters to the state's units and the kernels' layout."""
         options, noise = config.options, config.noise
         log_state = options.stiffness_state == "log"
-        heading = options.measurement == "heading"
+        heading = options.heading_state
         to_state = math.log if log_state else float
         settings = np.zeros(N_SETTINGS)
         settings[S_METHOD] = EXACT if options.discretization == "exact" else EULER
         settings[S_LOG] = 1.0 if log_state else 0.0
         settings[S_HEADING] = 1.0 if heading else 0.0
+        settings[S_COURSE] = 1.0 if options.course else 0.0
         settings[S_MIN_SPEED] = options.min_speed
         settings[S_LOW] = to_state(options.stiffness_bounds[0])
         settings[S_HIGH] = to_state(options.stiffness_bounds[1])
@@ -171,7 +173,7 @@ class FilterArrays:
         x0[X_THETA_R] = to_state(noise.initial_stiffness[1])
         x0[X_OFFSET] = config.vehicle.steering_offset
         return cls(
-            vehicle=vehicle_array(config.vehicle),
+            vehicle=vehicle_array(config.vehicle, options.course),
             settings=settings,
             process_noise=q,
             measurement_noise=np.array(noise.measurement_noise, dtype=np.float64),
@@ -187,16 +189,16 @@ def _state_diagonals(noise: NoiseParams, options: FilterOptions, lagged: bool) -
     0, a steady turn, and follow vy, r and the steering deterministically).
     """
     q, p0 = list(noise.process_noise), list(noise.initial_covariance)
-    if options.measurement == "heading":
+    if options.heading_state:
         q.insert(X_PSI, noise.heading_process_noise)
         p0.insert(X_PSI, noise.initial_heading_covariance)
-    motion = N_MOTION_HEADING if options.measurement == "heading" else N_MOTION_YAW_RATE
+    motion = N_MOTION_HEADING if options.heading_state else N_MOTION_YAW_RATE
     q[motion:motion] = [0.0] * (N_LAG if lagged else 0)
     p0[motion:motion] = [0.0] * (N_LAG if lagged else 0)
     estimated = options.estimate_steering_offset
     q.append(noise.steering_offset_process_noise if estimated else 0.0)
     p0.append(noise.steering_offset_initial_variance if estimated else 0.0)
-    estimated = options.estimate_heading_offset
+    estimated = options.heading_offset_estimated
     q.append(noise.heading_offset_process_noise if estimated else 0.0)
     p0.append(noise.heading_offset_initial_variance if estimated else 0.0)
     scale = options.noise_rate_scale

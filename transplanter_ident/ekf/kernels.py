@@ -23,6 +23,8 @@ Beyond the paper (DESIGN.md section 7):
   forces a stiffness update;
 * the speed input is the GNSS's, with its noise: P holds it through dx/dvx, with the covariance of the
   sample two intervals share (``ekf.speed_noise``, update.py);
+* a single antenna (``ekf.measurement: course``): psi is the antenna's course and z its measurement alone
+  (:func:`.model.course_row`, :mod:`.measurement_row`); its R follows from the velocity's;
 * relaxing tires (``vehicle.relaxation_length``): the slip lags of both axles follow the motion states,
   modelled once both stiffnesses are known (before, from a prior far off, their weaker response
   throws the stiffness to its bounds), and carried to each interval's speed (:mod:`.prediction`).
@@ -101,6 +103,7 @@ from transplanter_ident.ekf.layout import (
     O_VY_MODEL,
     S_ANTENNA_X,
     S_CHANGE_DETECTION,
+    S_COURSE,
     S_GATE,
     S_HIGH,
     S_LOG,
@@ -130,8 +133,10 @@ from transplanter_ident.ekf.layout import (
 )
 from transplanter_ident.ekf.measure_outputs import score_measures, write_measures, write_sensitivities
 from transplanter_ident.ekf.measurement_row import (
-    body_speed,
+    course_variance,
+    model_speed,
     predict_vy,
+    second_innovation,
     vy_row_quadratic,
     vy_row_times_column,
 )
@@ -142,7 +147,6 @@ from transplanter_ident.ekf.recovery import make_recovery
 from transplanter_ident.ekf.relaxation_signature import propagate_relaxation_bias, slip_deficits
 from transplanter_ident.ekf.sequence import innovation_covariance, normalized_innovation_squared
 from transplanter_ident.ekf.update import make_update
-from transplanter_ident.epochs.frames import wrap_angle
 from transplanter_ident.jit import called_kernel, inline_kernel, sized_kernel
 
 #: a state variance beyond this is divergence (ln C variance 1e12 means nothing is known)
@@ -264,7 +268,8 @@ def make_kernels(heading, lagged=False):
 
         dt = t - memo[M_T_PREV]
         out[O_DT] = dt
-        vx = body_speed(x, n, settings[S_ANTENNA_X], speed)  # the model's speed; the measurement's is speed
+        course = heading and settings[S_COURSE] > 0.5  # a single antenna: psi is its course, the one measurement
+        vx = model_speed(x, n, vehicle, settings[S_ANTENNA_X], speed, course)  # the measurement's is speed
         for i in range(n):
             ws[W_VEC, V_BACKUP_X, i] = x[i]
             for j in range(n):
@@ -305,7 +310,7 @@ def make_kernels(heading, lagged=False):
         if relaxing:
             eps_f, eps_r = slip_deficits(ws[W_VEC, V_BACKUP_MODEL], model, vehicle, dt, vx, steering_rate, nd - lag,
                                          relaxation > 0.0, relaxation)
-        r_model = (model[X_PSI] - psi_model_before) / dt if heading else model[X_R]
+        r_model = (model[X_PSI] - psi_model_before) / dt if heading and not course else model[X_R]
         vy_model = model[X_VY]
         adapting = t <= memo[M_ADAPT_UNTIL]
         scale_f = 1.0 if settings[S_LOG] > 0.5 else x[nf]
@@ -319,19 +324,21 @@ def make_kernels(heading, lagged=False):
             add_speed_noise(p, speed_variance, memo, ws)
 
         # 4.
-        e0 = vy_antenna - predict_vy(ws, n, x, settings[S_ANTENNA_X], speed)  # ~ vy + antenna_x r - vx h, and H[0]
-        e1 = wrap_angle(psi - x[X_PSI]) if heading else yaw_rate - x[X_R]
+        e0 = vy_antenna - predict_vy(ws, n, x, settings[S_ANTENNA_X], speed, course)  # ~ vy + ax r - vx h, and H[0]
+        e1 = second_innovation(x, heading, course, psi, yaw_rate, vehicle, vx)
         hph00 = vy_row_quadratic(ws, n, p)
         hph11 = p[h1, h1]
-        r0, r1 = effective_noise(memo, settings, r_noise[Z_VY], r_noise[Z_SECOND])  # as the innovations show it
+        second = course_variance(r_noise[Z_VY], speed) if course else r_noise[Z_SECOND]  # R of z[1] as configured
+        r0, r1 = effective_noise(memo, settings, r_noise[Z_VY], second)  # as the innovations show it
         hph01 = vy_row_times_column(ws, n, p, h1)
-        s00, s01, s11 = innovation_covariance(heading, hph00, hph01, hph11, r0, r1, speed)
+        heading_terms = heading and not course  # the measured heading's error in vy (no vy measured from a course)
+        s00, s01, s11 = innovation_covariance(heading_terms, hph00, hph01, hph11, r0, r1, speed)
         nis, det = normalized_innovation_squared(e0, e1, s00, s01, s11)  # det NaN: S lost definiteness, roll back
         out[O_E0], out[O_E1] = e0, e1
         out[O_S00], out[O_S01], out[O_S11] = s00, s01, s11
         out[O_NIS] = nis
         # the NIS against the configured R: the validity's consistency test (noisier sensors, a delay left out)
-        c00, c01, c11 = innovation_covariance(heading, hph00, hph01, hph11, r_noise[Z_VY], r_noise[Z_SECOND], speed)
+        c00, c01, c11 = innovation_covariance(heading_terms, hph00, hph01, hph11, r_noise[Z_VY], second, speed)
         out[O_NIS_CONFIGURED] = normalized_innovation_squared(e0, e1, c00, c01, c11)[0]
 
         # 5.
@@ -377,9 +384,10 @@ def make_kernels(heading, lagged=False):
         if relaxing:
             lag0, _ = propagate_relaxation_bias(memo, n, nd, nb, h1, updated, vx, eps_f, eps_r, ws)
         keep_speed_cross(memo, speed_variance, updated, ws)
+        if updated and (known or not course):  # a course's errors from a stiffness far off are not noise either
+            learn_noise(memo, settings, heading_terms, t, dt, speed, e0, e1, hph00, hph01, hph11, r_noise[Z_VY],
+                        second, not (heading_held or course), not heading_held)
         if updated:
-            learn_noise(memo, settings, heading, t, dt, speed, e0, e1, hph00, hph01, hph11, r_noise[Z_VY],
-                        r_noise[Z_SECOND], not heading_held)
             score_model_errors(memo, settings, dt, g0, g1, tire0, tire1, e0, e1, s00, s01, s11, det)
         if updated and measuring:  # the relaxation, gain, heading and play measures (measure_outputs.py)
             score_measures(memo, settings, dt, lag0, gain0, gain1, head0, head1, play0, play1, e0, e1, s00, s01, s11,

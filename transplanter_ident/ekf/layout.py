@@ -3,7 +3,8 @@
 The kernels of :mod:`.model` and :mod:`.kernels` work on flat float arrays; this module names
 their slots so that no kernel writes a bare number:
 
-* state x (n,): [vy, r, psi, theta_f, theta_r, b, h] in ``heading`` mode (z = [vy_antenna, psi]) or
+* state x (n,): [vy, r, psi, theta_f, theta_r, b, h] in ``heading`` mode (z = [vy_antenna, psi]; in ``course``
+  mode, a single antenna, psi is the antenna's course over ground and z its measurement alone) or
   [vy, r, theta_f, theta_r, b, h] in ``yaw_rate`` mode (the paper's eq. 11 plus b and h, z = [vy_antenna, r]);
   theta = ln C (``log``) or C (``linear``), b the steering-sensor offset (wheel = sensor - b), h the
   heading's misalignment left out of ``vehicle.heading_offset`` (the vy measurement is vy + antenna_x r
@@ -66,7 +67,10 @@ S_NOISE_CORRELATION = 43
 S_CHANGE_OFFSET_Q = 44
 S_P0_HEADING_OFFSET = 45  # rad^2: P0 of the heading's misalignment h (0: not estimated, recovery.py re-initialises to it)
 S_PLAY_UNCERTAINTY = 46  # rad, 1-sigma of the steering play left out of vehicle.steering_play (play_signature.py)
-N_SETTINGS = 47
+#: 1: a single antenna (ekf.measurement course): the heading state is the antenna's course over ground, the one
+#: measurement (measurement_row.py); the vy row measures nothing
+S_COURSE = 47
+N_SETTINGS = 48
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6
@@ -167,7 +171,10 @@ N_EPOCH_COLUMNS = len(EPOCH_COLUMNS)
 # vehicle constants (model.vehicle_array)
 VEH_MASS, VEH_LF, VEH_LR, VEH_IZ = 0, 1, 2, 3
 VEH_RELAXATION = 4  # m, the tires' relaxation length (0: the force follows the slip at once, eq. 4)
-N_VEHICLE = 5
+#: 1: the heading state is the antenna's course, psi + (vy + antenna_x r) / vx (model.course_row), with
+#: VEH_ANTENNA_X, VEH_ANTENNA_Y the antenna ahead of and left of the CG (measurement_row.course_curvature)
+VEH_COURSE, VEH_ANTENNA_X, VEH_ANTENNA_Y = 5, 6, 7
+N_VEHICLE = 8
 
 # discretisation codes (settings[S_METHOD])
 EXACT, EULER = 0, 1

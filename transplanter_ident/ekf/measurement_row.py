@@ -1,4 +1,4 @@
-"""The vy measurement's h(x) and its row of H (paper eq. 12, with the lever arm and the heading's misalignment).
+"""The measurements' h(x) and the vy row of H (paper eq. 12, with the lever arm and the heading's misalignment).
 
 The assembler turns the GNSS velocity by the *measured* heading psi + h, so it gives, with the
 antenna's body-frame lateral velocity vy + antenna_x r and the speed vx it measured along that heading,
@@ -11,7 +11,13 @@ The heading measurement needs no h: the heading state integrates r from the firs
 so it holds the measured frame's heading; the prediction runs at the vehicle's forward speed
 (:func:`body_speed`). The step writes the row once per epoch
 (:func:`predict_vy`, into ws[W_VEC, V_VY_ROW]); the update, the speed's covariance and the model
-errors' bias propagation all read it there, so H is written in one place. The readers take its three
+errors' bias propagation all read it there, so H is written in one place.
+
+A single antenna (``ekf.measurement: course``) measures only the direction of its velocity, its course
+psi + atan2(vy + antenna_x r, vx - antenna_y r). The heading state is then that course linearised,
+psi + (vy + antenna_x r) / vx (:func:`.model.course_row`), z_vy measures nothing (H[0] = 0), the course's
+innovation holds the rest (:func:`course_curvature`), its R is the velocity's over |v|^2
+(:func:`course_variance`), and the model runs at the forward speed under |v| (:func:`course_speed`). The readers take its three
 non-zero entries only (a hot loop: the step reads the row some twenty times).
 """
 
@@ -19,13 +25,21 @@ from __future__ import annotations
 
 import math
 
-from transplanter_ident.ekf.layout import V_VY_ROW, W_VEC, X_R, X_VY
+from transplanter_ident.ekf.layout import V_VY_ROW, VEH_ANTENNA_X, VEH_ANTENNA_Y, W_VEC, X_PSI, X_R, X_VY
+from transplanter_ident.epochs.frames import wrap_angle
 from transplanter_ident.jit import inline_kernel
 
 
 @inline_kernel
-def predict_vy(ws, n, x, antenna_x, speed):
-    """H(x)'s vy entry for this epoch; H[0]'s non-zero entries (vy, r, h: state n - 1) into ws[W_VEC, V_VY_ROW]."""
+def predict_vy(ws, n, x, antenna_x, speed, course):
+    """H(x)'s vy entry for this epoch; H[0]'s non-zero entries (vy, r, h: state n - 1) into ws[W_VEC, V_VY_ROW].
+
+    ``course`` (a single antenna): the velocity turned by its own direction has no lateral part, so z_vy is 0
+    and measures nothing: H[0] = 0 and h(x) = 0 (the course itself is the heading state, :func:`course_variance`).
+    """
+    if course:
+        ws[W_VEC, V_VY_ROW, X_VY] = ws[W_VEC, V_VY_ROW, X_R] = ws[W_VEC, V_VY_ROW, n - 1] = 0.0
+        return 0.0
     heading_offset = x[n - 1]
     secant, tangent = 1.0 / math.cos(heading_offset), math.tan(heading_offset)
     antenna_vy = x[X_VY] + antenna_x * x[X_R]
@@ -73,3 +87,47 @@ def vy_row_quadratic(ws, n, m):
     return (ws[W_VEC, V_VY_ROW, X_VY] * vy_row_times_column(ws, n, m, X_VY)
             + ws[W_VEC, V_VY_ROW, X_R] * vy_row_times_column(ws, n, m, X_R)
             + ws[W_VEC, V_VY_ROW, n - 1] * vy_row_times_column(ws, n, m, n - 1))
+
+
+@inline_kernel
+def course_variance(velocity_variance, speed):
+    """R of a course over ground: a velocity error e across the motion turns it by e / |v| (per-axis variance)."""
+    return velocity_variance / max(speed * speed, 1.0e-6)
+
+
+@inline_kernel
+def course_speed(x, vehicle, speed):
+    """A single antenna: the CG's forward speed from the antenna's ``speed`` |v| along its course.
+
+    The antenna moves at (vx - antenna_y r, vy + antenna_x r), so vx = sqrt(|v|^2 - (vy + antenna_x r)^2) +
+    antenna_y r. At farm speeds the stiffness is read off a response within a percent of the kinematic one,
+    and |v| exceeds the forward speed by u^2 / 2 (half a percent at u = 0.1 rad, in phase with the steering).
+    """
+    lateral = x[X_VY] + vehicle[VEH_ANTENNA_X] * x[X_R]
+    return math.sqrt(max(speed * speed - lateral * lateral, 0.25 * speed * speed)) + vehicle[VEH_ANTENNA_Y] * x[X_R]
+
+
+@inline_kernel
+def course_curvature(x, vehicle, vx):
+    """What the measured course lacks of the state's: u - atan2(vy + antenna_x r, vx - antenna_y r).
+
+    The state is psi + u with u = (vy + antenna_x r) / vx (model.course_row, linear); the antenna's velocity
+    points at psi + atan2(vy + antenna_x r, vx - antenna_y r). H keeps the linear row (the rest is second order).
+    """
+    lateral = x[X_VY] + vehicle[VEH_ANTENNA_X] * x[X_R]
+    return lateral / vx - math.atan2(lateral, vx - vehicle[VEH_ANTENNA_Y] * x[X_R])
+
+
+@inline_kernel
+def model_speed(x, n, vehicle, antenna_x, speed, course):
+    """The speed the model runs at: :func:`course_speed` for a single antenna, else :func:`body_speed`."""
+    return course_speed(x, vehicle, speed) if course else body_speed(x, n, antenna_x, speed)
+
+
+@inline_kernel
+def second_innovation(x, heading, course, psi, yaw_rate, vehicle, vx):
+    """z[1] - h(x)[1]: the heading's (wrapped; a course's with :func:`course_curvature`), or the yaw rate's."""
+    if not heading:
+        return yaw_rate - x[X_R]
+    e1 = wrap_angle(psi - x[X_PSI])
+    return e1 + course_curvature(x, vehicle, vx) if course else e1

@@ -4,7 +4,8 @@ The model is stated once, as the augmented continuous matrix
 
     M(C) = [[A(Cf, Cr, vx), B(Cf), 0], [0, 0, 1], [0, 0, 0]]      (eq. 4, corrected eq. 1)
 
-over the motion states [vy, r] (plus heading psi with psi' = r in heading mode), the steering
+over the motion states [vy, r] (plus heading psi with psi' = r in heading mode; in course mode the antenna's
+course, :func:`course_row`), the steering
 angle delta and its rate. With a tire relaxation length sigma (beyond the paper) each axle's force
 builds over sigma of travel, F' = (vx / sigma) (C alpha - F); the model then carries the slip lags
 d = alpha - F / C of both axles after the motion states (d' = alpha' - (vx / sigma) d, zero in a
@@ -38,6 +39,8 @@ from transplanter_ident.ekf.layout import (
     N_LAG,
     N_MOTION_HEADING,
     N_MOTION_YAW_RATE,
+    VEH_ANTENNA_X,
+    VEH_COURSE,
     VEH_IZ,
     VEH_LF,
     VEH_LR,
@@ -67,10 +70,10 @@ TAYLOR_ORDER = 10
 SCALING_NORM = 0.5
 
 
-def vehicle_array(vehicle: VehicleParams) -> np.ndarray:
-    """Pack the vehicle constants for the compiled kernels (layout.VEH_*)."""
-    return np.array([vehicle.mass, vehicle.lf, vehicle.lr, vehicle.yaw_inertia, vehicle.relaxation_length],
-                    dtype=np.float64)
+def vehicle_array(vehicle: VehicleParams, course: bool = False) -> np.ndarray:
+    """Pack the vehicle constants for the compiled kernels (layout.VEH_*); ``course``: a single antenna's heading state."""
+    return np.array([vehicle.mass, vehicle.lf, vehicle.lr, vehicle.yaw_inertia, vehicle.relaxation_length,
+                     1.0 if course else 0.0, vehicle.antenna_x, vehicle.antenna_y], dtype=np.float64)
 
 
 def work_buffer() -> np.ndarray:
@@ -121,10 +124,26 @@ def continuous_matrix(cf, cr, vx, vehicle, with_heading, lagged, relaxation, ws)
         for j in range(2):
             ws[W_DM_V, i, j] = -ws[W_M, i, j] / vx
     ws[W_DM_V, 0, 1] = -1.0 + (cf * lf - cr * lr) * a / vx
-    if with_heading:
-        ws[W_M, 2, 1] = 1.0
     if lagged and relaxation > 0.0:
         lag_rows(cf, cr, vx, lf, lr, mass, iz, relaxation, nd - N_LAG, ws)
+    if with_heading and vehicle[VEH_COURSE] > 0.5:
+        course_row(vx, vehicle[VEH_ANTENNA_X], nd, ws)
+    if with_heading:
+        ws[W_M, 2, 1] += 1.0
+
+
+@inline_kernel
+def course_row(vx, antenna_x, nd, ws):
+    """Row 2 as the antenna's course: chi = psi + (vy + antenna_x r) / vx, so chi' = r + (vy' + antenna_x r') / vx.
+
+    A single antenna measures the direction of its velocity only; with the heading state taken as that
+    course the measurement stays one state (z = chi), and the stiffness enters its row through vy' and r'
+    (rows 0 and 1, over every column: motion, lags, delta, delta'). The speed is the interval's constant.
+    """
+    for j in range(nd + 2):
+        for slot in (W_M, W_DM_F, W_DM_R, W_DM_V):
+            ws[slot, 2, j] = (ws[slot, 0, j] + antenna_x * ws[slot, 1, j]) / vx
+        ws[W_DM_V, 2, j] -= ws[W_M, 2, j] / vx  # d/dvx of (row / vx): (d row / dvx) / vx - row / vx^2
 
 
 @inline_kernel

@@ -5,7 +5,9 @@ Here, for each GNSS epoch t_k (velocity and heading paired by stamp, :mod:`.pair
 
 * heading: ENU yaw, or compass heading (clockwise from north) for ``ned``, of the heading source;
   minus ``vehicle.heading_offset`` (the source's yaw relative to the vehicle x axis, e.g. a
-  dual-antenna baseline mounted across the vehicle); unwrapped across +-pi;
+  dual-antenna baseline mounted across the vehicle); unwrapped across +-pi. A single antenna
+  (``ekf.measurement: course``, :attr:`~.settings.AssemblerSettings.course`): no heading samples; each
+  velocity's direction is its epoch's heading, which the filter models as the antenna's course;
 * velocity: ENU or NED, rotated into the body frame by the heading; or already in body axes at
   the antenna (a nav_msgs/Odometry twist, :meth:`EpochAssembler.add_body_velocity`, turned by
   ``body_velocity_rotation`` when its child frame is the heading source's);
@@ -208,7 +210,21 @@ class EpochAssembler:
             return self._reject("velocity", stamp, "stamp not after the previous velocity sample",
                                 checks.STAMP_ORDER)
         self._guard.accept("velocity", motion_time)
+        if self.settings.course:
+            return self._course_epoch(stamp, payload)
         return self._pair("velocity", stamp, payload)
+
+    def _course_epoch(self, stamp: float, payload: tuple[str, float, float, float, float]) -> list[Epoch]:
+        """A single antenna: the velocity's own direction is the epoch's heading (a course), its vy 0 by construction."""
+        frame, east, north, variance_east, variance_north = payload
+        if frame != "enu":
+            return self._reject("velocity", stamp, "a velocity in body axes has no course: ekf.measurement course "
+                                "needs a velocity in ENU or NED", checks.OTHER)
+        course = math.atan2(north, east)
+        vx_ant, vy_ant = body_velocity(east, north, course)
+        self._pending.append((stamp - self.settings.gnss_delay, vx_ant, vy_ant, course,
+                              lateral_variance(variance_east, variance_north, course), 0.0))
+        return self._flush()
 
     def _stamp_ok(self, stream: str, stamp: float, motion_time: float) -> bool:
         """False (and a rejection) for an outlier stamp; after a time step, the stream's state restarts."""
@@ -297,6 +313,8 @@ class EpochAssembler:
         dt = t - previous.t
         yaw_rate = (unwrapped - previous.yaw) / dt
         vx, vy = remove_lever_arm(vx_ant, vy_ant, yaw_rate, settings.antenna_x, settings.antenna_y)
+        if settings.course:  # the filter turns the antenna's |v| into the CG's vx itself (measurement_row.course_speed)
+            vx = vx_ant
         limit = self._limit_problem(yaw_rate, vy)
         if limit is not None:
             self._beyond_limits += 1

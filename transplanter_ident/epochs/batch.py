@@ -88,7 +88,7 @@ def assemble_batch(settings: AssemblerSettings, streams: Sequence[SampleStream],
     ``source_keys``: per rejection made while the samples were read (bag decoding), the key of the first
     sample read after it; they count in :attr:`BatchResult.rejected` as epochs.counted.assemble_counting counts.
     """
-    if any(s.name not in KINDS for s in streams):
+    if settings.course or any(s.name not in KINDS for s in streams):  # a course: the streaming assembler's epochs
         return None
     merged = _merge(streams)
     if merged is None:

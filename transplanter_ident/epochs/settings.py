@@ -20,6 +20,12 @@ from transplanter_ident.epochs.steering_line import ackermann_ratio, single_trac
 from transplanter_ident.epochs.steering_play import SteeringPlay, without_play
 
 
+def input_roles(params: EstimatorParams) -> tuple[str, ...]:
+    """The inputs the node subscribes and a bag must hold: a single antenna (``ekf.measurement: course``) has no heading."""
+    roles = ("velocity", "heading", "steering")
+    return tuple(r for r in roles if not (r == "heading" and params.config.options.course))
+
+
 def steering_sensor(vehicle: VehicleParams) -> dict[str, float]:
     """The assembler's ``steering_scale``, ``steering_play`` and ``ackermann`` for the vehicle's steering sensor."""
     ratio = ackermann_ratio(vehicle.steering_sensor_wheel, vehicle.track_width, vehicle.lf + vehicle.lr)
@@ -50,6 +56,7 @@ class AssemblerSettings:
     steering_scale: float = 1.0  # wheel angle per sensor angle; the limits above apply to the sensor's reading
     steering_play: float = 0.0  # rad of wheel angle, the linkage's free travel (steering_play; sign: where it lies)
     ackermann: float = 0.0  # steering_line.single_track_angle's ratio (0: the sensor gives the single-track angle)
+    course: bool = False  # a single antenna (ekf.measurement course): each velocity's direction is its epoch's heading
 
     @classmethod
     def from_params(cls, params: EstimatorParams) -> AssemblerSettings:
@@ -70,7 +77,8 @@ class AssemblerSettings:
                    body_velocity_rotation=vehicle.heading_offset if one_odometry else 0.0,
                    max_stamp_jump=params.gnss.max_stamp_jump, max_speed=vehicle.max_speed,
                    max_lateral_speed=vehicle.max_lateral_speed, max_yaw_rate=vehicle.max_yaw_rate,
-                   max_steering_rate=vehicle.max_steering_rate, **steering_sensor(vehicle))
+                   max_steering_rate=vehicle.max_steering_rate, course=params.config.options.course,
+                   **steering_sensor(vehicle))
 
     def __post_init__(self) -> None:
         for name in ("velocity_frame", "heading_frame"):

@@ -58,7 +58,7 @@ def cramer_rao_bound(config: EstimatorConfig, epochs: EpochArrays, cornering_sti
                      steering_offset: float, segment: float = SEGMENT) -> CramerRaoBound | None:
     """The bound at (Cf, Cr, offset) from these epochs; None in yaw_rate mode or without information."""
     options = config.options
-    if options.measurement != "heading" or len(epochs) < 2 or min(cornering_stiffness) <= 0.0:
+    if not options.heading_state or len(epochs) < 2 or min(cornering_stiffness) <= 0.0:
         return None
     theta = np.array([math.log(cornering_stiffness[0]), math.log(cornering_stiffness[1]), steering_offset])
     information, used = window_information(config, kernel_input(epochs), theta, segment)
@@ -81,6 +81,6 @@ def final_bound_line(config: EstimatorConfig, epochs: EpochArrays, final_row: np
     stiffness = (float(final_row[O_CF]), float(final_row[O_CR]))
     bound = cramer_rao_bound(config, epochs, stiffness, float(final_row[O_OFFSET]))
     if bound is None:
-        why = "yaw_rate mode" if config.options.measurement != "heading" else "no informative epochs"
+        why = "yaw_rate mode" if not config.options.heading_state else "no informative epochs"
         return f"Cramér-Rao bound: not computed ({why})"
     return bound.describe((float(final_row[O_CF_STD]) / stiffness[0], float(final_row[O_CR_STD]) / stiffness[1]))

@@ -127,11 +127,11 @@ class HealthMonitor:
     """Everything the diagnostics need, fed by the node; :meth:`report` decides the levels."""
 
     def __init__(self, thresholds: HealthThresholds, now: float, topics: dict[str, str] | None = None,
-                 name: str = "estimator") -> None:
+                 name: str = "estimator", inputs: tuple[str, ...] = INPUTS) -> None:
         self.thresholds = thresholds
         self.topics = dict(topics or {})
         self.name = name  # the node's name: status names read "<name>: velocity input"
-        self.inputs = {name: InputMonitor(name, thresholds, now) for name in INPUTS}
+        self.inputs = {name: InputMonitor(name, thresholds, now) for name in inputs}  # one antenna: no heading
         self.latency = LatencyStats()
         self._start = now
         self._filter = _FilterState()
@@ -244,8 +244,10 @@ class HealthMonitor:
 
     def report(self, now: float) -> list[HealthReport]:
         """The current status lines: one per input, GNSS pairing, motion, measurements, convergence, excitation, latency."""
-        reports = [self._input_report(self.inputs[name], now) for name in INPUTS]
-        reports.append(HealthReport(f"{self.name}: GNSS pairing", *self.pairing.report(now)))
+        reports = [self._input_report(self.inputs[name], now) for name in INPUTS if name in self.inputs]
+        pairing = (self.pairing.report(now) if "heading" in self.inputs
+                   else (OK, "none: one antenna's velocity gives its course (ekf.measurement course)", ()))
+        reports.append(HealthReport(f"{self.name}: GNSS pairing", *pairing))
         convergence = convergence_report(self.name, self._filter.last_estimate, self._filter.updates,
                                          self.thresholds.converged_rel_std)
         reports += [self._motion_report(), self._measurement_report(now), self._validity_report(),

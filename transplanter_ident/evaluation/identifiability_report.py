@@ -26,8 +26,8 @@ def identifiability_report(name: str, information: np.ndarray, estimate: Estimat
     memory = options.identifiability_memory
     values: tuple[tuple[str, str], ...] = (("memory_s", f"{memory:g}"),
                                            ("limit_rel_std", f"{options.max_identifiable_rel_std:g}"))
-    if options.measurement != "heading" or not options.identifiability_check:
-        why = "yaw_rate mode" if options.measurement != "heading" else "ekf.identifiability_check is false"
+    if not options.heading_state or not options.identifiability_check:
+        why = "yaw_rate mode" if not options.heading_state else "ekf.identifiability_check is false"
         return HealthReport(title, OK, f"not computed ({why})", values)
     bound = bound_from_information(information, options.estimate_steering_offset, 0)
     if bound is None or estimate is None:

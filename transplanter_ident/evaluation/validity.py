@@ -122,8 +122,9 @@ class ValidityMonitor:
     """
 
     def __init__(self, settings: ValiditySettings, bounds: tuple[float, float], lever: float,
-                 antenna_x: float = 0.0, rear_slip_gain: float = 0.0) -> None:
+                 antenna_x: float = 0.0, rear_slip_gain: float = 0.0, course: bool = False) -> None:
         self.settings = settings
+        self.course = course  # ekf.measurement course: a course over ground is what the filter is told it measures
         self.bounds = bounds
         self.lever = lever  # lr + antenna_x: how far behind the antenna the rear axle is
         self.antenna_x = antenna_x  # m, the antenna ahead of the CG: its vy holds antenna_x r besides the sideslip
@@ -213,7 +214,7 @@ class ValidityMonitor:
             elif _frames_mixed(predicted):
                 reasons.append("the GNSS velocity turns against the heading (its direction changes at -r): "
                                "check frames.velocity / frames.heading (ENU or NED)")
-            if self._course_over_ground(predicted):
+            if not self.course and self._course_over_ground(predicted):
                 reasons.append("the heading looks like a course over ground (vy stays ~0 while the vehicle "
                                "turns): use a dual-antenna heading")
         return reasons
@@ -335,7 +336,7 @@ def monitor_for(config: EstimatorConfig, settings: ValiditySettings) -> Validity
     vehicle = config.vehicle
     rear_slip_gain = vehicle.mass * vehicle.lf / (2.0 * (vehicle.lf + vehicle.lr))
     return ValidityMonitor(settings, config.options.stiffness_bounds, vehicle.lr + vehicle.antenna_x, vehicle.antenna_x,
-                           rear_slip_gain)
+                           rear_slip_gain, config.options.course)
 
 
 def decide_sequence(config: EstimatorConfig, settings: ValiditySettings, epochs: EpochArrays,
@@ -348,7 +349,7 @@ def decide_sequence(config: EstimatorConfig, settings: ValiditySettings, epochs:
     monitor = monitor_for(config, settings)
     counts = rejected if rejected is not None else [0] * len(epochs)
     valid = decide_batch(settings, monitor.bounds, monitor.lever, RECHECK, epochs, outputs, counts, DISTRUSTED,
-                         monitor.antenna_x, monitor.rear_slip_gain)
+                         monitor.antenna_x, monitor.rear_slip_gain, monitor.course)
     if valid is not None:
         return valid
     return np.array([monitor.step(sample_of(epochs[i], outputs[i], counts[i])).valid for i in range(len(epochs))],

@@ -77,13 +77,14 @@ def consistency_nis(factor: np.ndarray | float, measured: np.ndarray | float, co
 def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever: float, recheck: float,
                  epochs: EpochArrays, outputs: np.ndarray, rejected: Sequence[int],
                  distrusted: Iterable[StepStatus], antenna_x: float = 0.0,
-                 rear_slip_gain: float = 0.0) -> np.ndarray | None:
+                 rear_slip_gain: float = 0.0, course: bool = False) -> np.ndarray | None:
     """The monitor's ``valid`` for every epoch, or None when the times do not strictly increase.
 
     ``rejected``: per epoch, the samples rejected since the previous one (Sample.rejected);
     ``distrusted``: the statuses that make an epoch suspect (validity.DISTRUSTED); ``antenna_x``: the
     antenna ahead of the CG (the sideslip check takes vy at the CG, ValidityMonitor.antenna_x);
-    ``rear_slip_gain``: the course-over-ground check's (:func:`steady_antenna_vy`, ValidityMonitor.rear_slip_gain).
+    ``rear_slip_gain``: the course-over-ground check's (:func:`steady_antenna_vy`, ValidityMonitor.rear_slip_gain);
+    ``course``: the filter measures a course (ekf.measurement course), so that check is off.
     """
     t = np.ascontiguousarray(epochs.t, dtype=np.float64)
     n = len(t)
@@ -131,7 +132,7 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
     steady_sq = np.array([steady_antenna_vy(lever, rear_slip_gain, v, c, x) ** 2
                           for v, c, x in zip(speed[plaus].tolist(), cr[plaus].tolist(), rp, strict=True)])
     s = settings
-    limits = np.array([s.window, recheck, s.max_sideslip, 0.05 ** 2, s.course_ratio,
+    limits = np.array([s.window, recheck, s.max_sideslip, 0.05 ** 2, 0.0 if course else s.course_ratio,
                        s.max_nonlinear_fraction, s.min_steering_std, s.min_yaw_rate_std, s.nis_quantile_sigmas,
                        s.max_autocorrelation, s.hold_on, s.hold_off, s.max_suspect_fraction, s.drift_window,
                        s.max_drift_sigmas, MIN_DRIFT_UPDATES])

@@ -57,6 +57,7 @@ from transplanter_ident.ekf.persistence import Keeper, LearnedState, default_pat
 from transplanter_ident.epochs import checks
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler
 from transplanter_ident.epochs.epoch import Epoch, Rejection
+from transplanter_ident.epochs.settings import input_roles
 from transplanter_ident.evaluation.health import HealthMonitor, HealthReport, should_publish
 from transplanter_ident.evaluation.identifiability_report import identifiability_report
 from transplanter_ident.evaluation.validity import monitor_for, sample_of
@@ -89,8 +90,9 @@ class EstimatorNode(Node):
         warm_up(params.config)
         self._assembler = EpochAssembler(AssemblerSettings.from_params(params))
         topics = params.topics
-        self._topics = {"velocity": topics.velocity, "heading": topics.heading, "steering": topics.steering}
-        self._health = HealthMonitor(self._settings.thresholds, time.monotonic(), self._topics, name=self.get_name())
+        self._topics = {role: getattr(topics, role) for role in input_roles(params)}  # no heading from one antenna
+        self._health = HealthMonitor(self._settings.thresholds, time.monotonic(), self._topics, name=self.get_name(),
+                                     inputs=tuple(self._topics))
         self._validity = monitor_for(params.config, params.validity)
         self._rejected = 0  # input samples rejected since the last epoch (validity: suspect input)
         self._keeper = Keeper(default_path(str(parameter_value(params, "persistence.file")), self.get_name()),
@@ -122,7 +124,7 @@ class EstimatorNode(Node):
         """One start-up line: the inputs with their message types and the filter's structure."""
         options = self._settings.params.config.options
         inputs = ", ".join(f"{self._topics[role]} ({self._settings.message_types[role].rsplit('/', 1)[-1]})"
-                           for role in ("velocity", "heading", "steering"))
+                           for role in self._topics)
         self.get_logger().info(f"estimating Cf, Cr from {inputs}; "
                                f"{options.discretization}/{options.stiffness_state}/{options.measurement}")
 
@@ -152,7 +154,9 @@ class EstimatorNode(Node):
         steering_type = adapters.STEERING_TYPES[types["steering"]]
         steering_callback = self._on_joint_state if steering_type is JointState else self._on_steering_float
         gnss = [("velocity", velocity_type, self._on_velocity), ("heading", heading_type, self._on_heading)]
-        if self._topics["velocity"] == self._topics["heading"]:  # one nav_msgs/Odometry topic (validated)
+        if "heading" not in self._topics:  # a single antenna: its velocity's direction is the heading (a course)
+            gnss = gnss[:1]
+        elif self._topics["velocity"] == self._topics["heading"]:  # one nav_msgs/Odometry topic (validated)
             gnss = [("velocity", velocity_type, self._on_velocity_and_heading)]
         inputs = []
         # Steering first: the default executor serves waiting subscriptions in creation order (the EventsExecutor

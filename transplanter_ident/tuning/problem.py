@@ -98,7 +98,7 @@ MOTION_Q_BOUNDS = (-8.0, -1.0)
 HEADING_Q_BOUNDS = (-12.0, -3.0)
 STIFFNESS_Q_BOUNDS = {"log": (-10.0, -2.0), "linear": (-2.0, 6.0)}
 LATERAL_VELOCITY_R_BOUNDS = (-6.0, -1.0)
-SECOND_R_BOUNDS = {"heading": (-8.0, -2.0), "yaw_rate": (-6.0, -1.0)}
+SECOND_R_BOUNDS = {"heading": (-8.0, -2.0), "yaw_rate": (-6.0, -1.0), "course": (-8.0, -2.0)}  # course: unused
 #: decades either side of the configured value within which a process noise is searched
 Q_SPAN = 1.0
 #: entry -> the filter state whose diagonal Q it is (the R entries: None)
@@ -108,9 +108,10 @@ _STATE_OF = {"q_vy": X_VY, "q_r": X_R, "q_psi": X_PSI, "q_cf": X_THETA_F, "q_cr"
 
 def searched_names(options: FilterOptions, tune_stiffness_noise: bool = False) -> tuple[str, ...]:
     """The entries searched: the physical noises (q_vy, q_r, q_psi in heading mode, R), plus q_Cf, q_Cr if asked."""
-    heading = ("q_psi",) if options.measurement == "heading" else ()
+    heading = ("q_psi",) if options.heading_state else ()
     stiffness = STIFFNESS_NAMES if tune_stiffness_noise else ()
-    return ("q_vy", "q_r", *heading, *stiffness, "r_vy", "r_2")
+    second = () if options.course else ("r_2",)  # a course's R follows from the velocity's (r_vy)
+    return ("q_vy", "q_r", *heading, *stiffness, "r_vy", *second)
 
 
 def _bounds(name: str, options: FilterOptions) -> tuple[float, float]:
@@ -226,7 +227,7 @@ def candidate_matrices(positions: np.ndarray, config: EstimatorConfig,
     positions = np.atleast_2d(np.asarray(positions, dtype=np.float64))
     if positions.shape[1] != len(names):
         raise ValueError(f"candidates must have {len(names)} columns, got {positions.shape[1]}")
-    if "q_psi" in names and config.options.measurement != "heading":
+    if "q_psi" in names and not config.options.heading_state:
         raise ValueError("q_psi is an entry of the heading measurement only")
     values = 10.0**positions
     arrays = FilterArrays.from_config(config)

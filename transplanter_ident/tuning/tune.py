@@ -190,7 +190,7 @@ def tuned_parameters(config: EstimatorConfig) -> dict[str, Any]:
     }
     if options.process_noise_units == "per_step":
         flat["ekf.process_noise_step"] = float(options.process_noise_step)
-    if options.measurement == "heading":
+    if options.heading_state:
         flat["ekf.heading_process_noise"] = float(noise.heading_process_noise)
     return flat
 
