@@ -60,6 +60,15 @@ def epochs_from_result(result: SimResult, vehicle: VehicleParams | None = None) 
     return epochs
 
 
+def course_epochs(result: SimResult, vehicle: VehicleParams | None = None) -> EpochArrays:
+    """A single antenna (``ekf.measurement: course``): the velocity and steering streams alone; fails on any rejection."""
+    assembler = EpochAssembler(assembler_settings(vehicle or VehicleParams(), course=True))
+    epochs = assemble(assembler, [s for s in sim_samples(result) if s[0] != "heading"])
+    rejections = assembler.drain_rejections()
+    assert not rejections, f"clean simulated data was rejected: {rejections[:3]}"
+    return EpochArrays(epochs)
+
+
 def heading_held(outputs: object, k: int) -> bool:
     """Whether epoch k's update held the estimated heading misalignment h (kernels.py: while the filter starts).
 

@@ -278,10 +278,19 @@ def _run(args: argparse.Namespace) -> int:
             backend.close()
 
 
+CALIBRATIONS = ("estimate_heading_offset", "estimate_delay", "estimate_steering_play", "estimate_steering_scale",
+                "estimate_yaw_inertia", "estimate_relaxation_length")  # the calibration searches' argparse names
+
+
 def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend, remote: Backend) -> int:
     if args.report:
         check_report_path(args.report)
     estimated: dict[str, tuple[float, str]] = {}  # calibration key -> (value, the search's line)
+    asked = [f"--{f.replace('_', '-')}" for f in CALIBRATIONS if getattr(args, f)]
+    if asked and params.config.options.course:
+        raise CliError(f"{', '.join(asked)}: not with ekf.measurement course. One antenna's course hardly tells them "
+                       "from the stiffness (its delay objective is flat over +-60 ms while Cf moves +-35 %): calibrate "
+                       "on drives with a dual-antenna heading, or take them from the receiver's and the vehicle's data")
     if args.estimate_heading_offset:  # ahead of all: the offset shapes the epochs
         from transplanter_ident.cli.delay_search import calibrate_heading
 

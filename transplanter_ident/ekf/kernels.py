@@ -133,8 +133,8 @@ from transplanter_ident.ekf.layout import (
 )
 from transplanter_ident.ekf.measure_outputs import score_measures, write_measures, write_sensitivities
 from transplanter_ident.ekf.measurement_row import (
+    body_speed,
     course_variance,
-    model_speed,
     predict_vy,
     second_innovation,
     vy_row_quadratic,
@@ -174,7 +174,7 @@ def make_kernels(heading, lagged=False):
     propagate_covariance, add_speed_noise, joseph_update, keep_speed_cross = make_update(n, nd, h1)
 
     prediction = make_prediction(heading, lagged)
-    reset_motion, stiffness, predict_n, carry_lags, add_lag_noise, predict_inertia_gain = prediction
+    reset_motion, stiffness, predict_n, carry_lags, add_lag_noise, predict_inertia_gain, course_model_speed = prediction
 
     @called_kernel
     def write_outputs(x, p, memo, settings, status, r_model, vy_model, out):
@@ -269,7 +269,8 @@ def make_kernels(heading, lagged=False):
         dt = t - memo[M_T_PREV]
         out[O_DT] = dt
         course = heading and settings[S_COURSE] > 0.5  # a single antenna: psi is its course, the one measurement
-        vx = model_speed(x, n, vehicle, settings[S_ANTENNA_X], speed, course)  # the measurement's is speed
+        vx = (course_model_speed(x, vehicle, settings, dt, speed, steering, steering_rate, ws) if course  # |v|
+              else body_speed(x, n, settings[S_ANTENNA_X], speed))  # the model's speed; the measurement's is speed
         for i in range(n):
             ws[W_VEC, V_BACKUP_X, i] = x[i]
             for j in range(n):

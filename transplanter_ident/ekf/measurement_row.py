@@ -25,7 +25,15 @@ from __future__ import annotations
 
 import math
 
-from transplanter_ident.ekf.layout import V_VY_ROW, VEH_ANTENNA_X, VEH_ANTENNA_Y, W_VEC, X_PSI, X_R, X_VY
+from transplanter_ident.ekf.layout import (
+    V_VY_ROW,
+    VEH_ANTENNA_X,
+    VEH_ANTENNA_Y,
+    W_VEC,
+    X_PSI,
+    X_R,
+    X_VY,
+)
 from transplanter_ident.epochs.frames import wrap_angle
 from transplanter_ident.jit import inline_kernel
 
@@ -96,15 +104,17 @@ def course_variance(velocity_variance, speed):
 
 
 @inline_kernel
-def course_speed(x, vehicle, speed):
-    """A single antenna: the CG's forward speed from the antenna's ``speed`` |v| along its course.
+def course_speed(vehicle, speed, motion):
+    """A single antenna: the CG's forward speed from the antenna's ``speed``, the mean |v| of the interval's ends.
 
     The antenna moves at (vx - antenna_y r, vy + antenna_x r), so vx = sqrt(|v|^2 - (vy + antenna_x r)^2) +
-    antenna_y r. At farm speeds the stiffness is read off a response within a percent of the kinematic one,
-    and |v| exceeds the forward speed by u^2 / 2 (half a percent at u = 0.1 rad, in phase with the steering).
+    antenna_y r, with ``motion`` = (vy, r) the interval's (prediction.interval_motion). At farm speeds the stiffness is
+    read off a response within a percent of the kinematic one, and |v| exceeds the forward speed by u^2 / 2
+    (half a percent at u = 0.1 rad, in phase with the steering) and by -antenna_y r.
     """
-    lateral = x[X_VY] + vehicle[VEH_ANTENNA_X] * x[X_R]
-    return math.sqrt(max(speed * speed - lateral * lateral, 0.25 * speed * speed)) + vehicle[VEH_ANTENNA_Y] * x[X_R]
+    vy, r = motion
+    lateral = vy + vehicle[VEH_ANTENNA_X] * r
+    return math.sqrt(max(speed * speed - lateral * lateral, 0.25 * speed * speed)) + vehicle[VEH_ANTENNA_Y] * r
 
 
 @inline_kernel
@@ -116,12 +126,6 @@ def course_curvature(x, vehicle, vx):
     """
     lateral = x[X_VY] + vehicle[VEH_ANTENNA_X] * x[X_R]
     return lateral / vx - math.atan2(lateral, vx - vehicle[VEH_ANTENNA_Y] * x[X_R])
-
-
-@inline_kernel
-def model_speed(x, n, vehicle, antenna_x, speed, course):
-    """The speed the model runs at: :func:`course_speed` for a single antenna, else :func:`body_speed`."""
-    return course_speed(x, vehicle, speed) if course else body_speed(x, n, antenna_x, speed)
 
 
 @inline_kernel

@@ -314,7 +314,7 @@ class EpochAssembler:
         yaw_rate = (unwrapped - previous.yaw) / dt
         vx, vy = remove_lever_arm(vx_ant, vy_ant, yaw_rate, settings.antenna_x, settings.antenna_y)
         if settings.course:  # the filter turns the antenna's |v| into the CG's vx itself (measurement_row.course_speed)
-            vx = vx_ant
+            vx, vy = vx_ant, math.nan  # and one antenna does not measure vy
         limit = self._limit_problem(yaw_rate, vy)
         if limit is not None:
             self._beyond_limits += 1

@@ -12,7 +12,7 @@ of these hold over a window of data time (the same decision online and offline):
   filter's model and R are right) passes a windowed chi^2 test, and the whitened innovations are
   not autocorrelated (an unconfigured GNSS delay, a wrong lever arm or a wrong R show there); over
   the epochs whose measurement the filter used (a gated outlier counts as suspect input instead);
-* plausible: the heading is not a course over ground (then vy is zero by construction while the
+* plausible: a heading is not a course over ground (then vy is zero by construction while the
   vehicle turns: the antenna's vy stays well below what a steady turn gives there, (lr + antenna_x) r
   less the rear axle's slip at the estimated Cr), and the GNSS velocity agrees with the heading (an
   ENU/NED mix-up implies a sideslip at the CG no transplanter has, or a course that turns against
@@ -23,10 +23,10 @@ of these hold over a window of data time (the same decision online and offline):
   than the random walk lets the estimate follow keeps pushing them one way, and the band lags it;
   nor has the directional change test gathered ``max_change_evidence`` of its alarm level
   (layout.O_CHANGE_EVIDENCE): a new surface is suspected, and the estimate lags it until the alarm;
-* trusted input (issue #14): at most ``max_suspect_fraction`` of the window's epochs follow a
-  rejected input sample (:attr:`Sample.rejected`: the samples and epochs rejected since the
-  previous epoch, in the order they were processed: the same online and offline) or were gated,
-  rejected or rolled back by the filter.
+* trusted input (issue #14): at most ``max_suspect_fraction`` of the window's epochs follow a rejected
+  input sample (:attr:`Sample.rejected`, in processing order: the same online and offline) or were gated,
+  rejected or rolled back by the filter;
+* a set-up the data can check (:func:`setup_reasons`): one antenna's course cannot show a GNSS timing error.
 
 Hysteresis: valid only after every check held for ``hold_on`` s; invalid once any has failed
 for ``hold_off`` s (at once for the plausibility and bound checks). The window checks run every
@@ -122,9 +122,11 @@ class ValidityMonitor:
     """
 
     def __init__(self, settings: ValiditySettings, bounds: tuple[float, float], lever: float,
-                 antenna_x: float = 0.0, rear_slip_gain: float = 0.0, course: bool = False) -> None:
+                 antenna_x: float = 0.0, rear_slip_gain: float = 0.0, course: bool = False,
+                 setup: tuple[str, ...] = ()) -> None:
         self.settings = settings
         self.course = course  # ekf.measurement course: a course over ground is what the filter is told it measures
+        self.setup = setup  # reasons the set-up alone gives (setup_reasons), in every epoch
         self.bounds = bounds
         self.lever = lever  # lr + antenna_x: how far behind the antenna the rear axle is
         self.antenna_x = antenna_x  # m, the antenna ahead of the CG: its vy holds antenna_x r besides the sideslip
@@ -156,7 +158,7 @@ class ValidityMonitor:
             self._window_hard = self._plausibility(window)
             self._window_soft = self._suspect(window) + self._consistency(window) + self._drift()
         hard = self._bounds(sample) + self._window_hard
-        soft = self._epoch_checks(sample) + self._window_soft
+        soft = self._epoch_checks(sample) + self._window_soft + list(self.setup)
         self.last = self._hysteresis(sample.t, hard, soft)
         return self.last
 
@@ -336,7 +338,15 @@ def monitor_for(config: EstimatorConfig, settings: ValiditySettings) -> Validity
     vehicle = config.vehicle
     rear_slip_gain = vehicle.mass * vehicle.lf / (2.0 * (vehicle.lf + vehicle.lr))
     return ValidityMonitor(settings, config.options.stiffness_bounds, vehicle.lr + vehicle.antenna_x, vehicle.antenna_x,
-                           rear_slip_gain, config.options.course)
+                           rear_slip_gain, config.options.course, setup_reasons(config))
+
+
+def setup_reasons(config: EstimatorConfig) -> tuple[str, ...]:
+    """What the set-up alone rules out: a single antenna's course cannot show a GNSS timing error."""
+    if config.options.course and not config.options.delay_uncertainty > 0.0:
+        return ("one antenna's course cannot show a GNSS timing error, which moves the stiffness ~1.3 % per ms: set "
+                "gnss.delay, and ekf.delay_uncertainty to its 1-sigma (s)",)
+    return ()
 
 
 def decide_sequence(config: EstimatorConfig, settings: ValiditySettings, epochs: EpochArrays,
@@ -349,7 +359,7 @@ def decide_sequence(config: EstimatorConfig, settings: ValiditySettings, epochs:
     monitor = monitor_for(config, settings)
     counts = rejected if rejected is not None else [0] * len(epochs)
     valid = decide_batch(settings, monitor.bounds, monitor.lever, RECHECK, epochs, outputs, counts, DISTRUSTED,
-                         monitor.antenna_x, monitor.rear_slip_gain, monitor.course)
+                         monitor.antenna_x, monitor.rear_slip_gain, monitor.course, bool(monitor.setup))
     if valid is not None:
         return valid
     return np.array([monitor.step(sample_of(epochs[i], outputs[i], counts[i])).valid for i in range(len(epochs))],

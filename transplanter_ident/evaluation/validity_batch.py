@@ -77,14 +77,15 @@ def consistency_nis(factor: np.ndarray | float, measured: np.ndarray | float, co
 def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever: float, recheck: float,
                  epochs: EpochArrays, outputs: np.ndarray, rejected: Sequence[int],
                  distrusted: Iterable[StepStatus], antenna_x: float = 0.0,
-                 rear_slip_gain: float = 0.0, course: bool = False) -> np.ndarray | None:
+                 rear_slip_gain: float = 0.0, course: bool = False, setup: bool = False) -> np.ndarray | None:
     """The monitor's ``valid`` for every epoch, or None when the times do not strictly increase.
 
     ``rejected``: per epoch, the samples rejected since the previous one (Sample.rejected);
     ``distrusted``: the statuses that make an epoch suspect (validity.DISTRUSTED); ``antenna_x``: the
     antenna ahead of the CG (the sideslip check takes vy at the CG, ValidityMonitor.antenna_x);
     ``rear_slip_gain``: the course-over-ground check's (:func:`steady_antenna_vy`, ValidityMonitor.rear_slip_gain);
-    ``course``: the filter measures a course (ekf.measurement course), so that check is off.
+    ``course``: the filter measures a course (ekf.measurement course), so that check is off; ``setup``: the set-up
+    alone rules every epoch out (validity.setup_reasons).
     """
     t = np.ascontiguousarray(epochs.t, dtype=np.float64)
     n = len(t)
@@ -109,7 +110,7 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
         hard = (cf <= low * 1.01) | (cf >= high / 1.01) | (cr <= low * 1.01) | (cr >= high / 1.01)
         front, rear = cf_std / cf, cr_std / cr
         worst = np.where(rear > front, rear, front)  # max(front, rear), NaN as Python's max treats it
-        soft = ~predicted | ~(worst <= settings.max_rel_std)
+        soft = ~predicted | ~(worst <= settings.max_rel_std) | setup
         for error in MODEL_ERRORS:  # a GNSS delay, a relaxation length, a steering gain left out (model_errors.py)
             soft |= error.fails(outputs, front, rear, settings)
         soft |= noise_factor(outputs) > settings.max_noise_factor

@@ -131,11 +131,13 @@ def output_values(epoch: Epoch, est: Estimate) -> tuple[float, ...]:
     """What one epoch publishes (OutputMessages.fill reads them in this order).
 
     Cf, Cr, their 1-sigma, the model's vy and r, the measured vx, vy, r, the steering offset and its
-    1-sigma, and the correlation of the two stiffness states.
+    1-sigma, and the correlation of the two stiffness states. A single antenna measures no vy
+    (``ekf.measurement: course``): the filter's estimate of it stands in.
     """
+    measured_vy = epoch.lateral_velocity if math.isfinite(epoch.lateral_velocity) else est.lateral_velocity
     return (est.cornering_stiffness_front, est.cornering_stiffness_rear, est.cornering_stiffness_front_std,
             est.cornering_stiffness_rear_std, est.lateral_velocity_model, est.yaw_rate_model,
-            epoch.longitudinal_velocity, epoch.lateral_velocity, epoch.yaw_rate, est.steering_offset,
+            epoch.longitudinal_velocity, measured_vy, epoch.yaw_rate, est.steering_offset,
             est.steering_offset_std, est.stiffness_correlation)
 
 

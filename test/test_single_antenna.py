@@ -1,0 +1,151 @@
+"""A single-antenna receiver (``ekf.measurement: course``): only the velocity's direction, no heading.
+
+The filter's heading state is then the antenna's course (test_course_model.py checks the model); the
+estimate is less precise than with a dual-antenna heading (the Cramér-Rao bound of ln Cf on the
+identification drive rises ~1.8x at 2 m/s), so the defaults' ``validity.max_rel_std`` (5 %) seldom
+passes it; the band must still hold the truth. Required, from 30 s on, over seeds 0-5 (measured in
+brackets, session 29):
+
+* the package's simulator, 2 m/s, +-15 deg sine, 120 s: +-2 sigma covers Cf and Cr in >= 95 % of all
+  epochs (100 %); final |error| median <= 3 % (1.2 %), worst <= 6 % (2.8 %); with
+  ``validity.max_rel_std`` 0.08 valid in >= 50 % (79 %), <= 5 % of those outside +-2 sigma (0);
+* the independent simulator (Magic Formula mu 0.8, RK45) with the antenna 0.8 m ahead of and 0.5 m
+  left of the CG: covered in >= 95 % (100 %), final median <= 3 %, worst <= 8 %;
+* no timing uncertainty stated (``ekf.delay_uncertainty`` 0): never valid, the reason says why; a GNSS
+  10 ms late moves the stiffness ~12 % (the tests state 2 ms; 10 ms stated: covered in >= 95 %);
+* 1.5 m/s for 300 s from the default prior (1000 N/rad; seed 3 once locked onto Cf = Cr = 1500 +- 4 %
+  while the course's errors drove its learned R x100): covered in >= 90 % of the epochs from 60 s on.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+from drives import Run, judged_figures, sine_drive
+from helpers import QUICK_TUNE, course_epochs, run_command
+from independent_sim import independent_drive
+
+from transplanter_ident.bags import write_sim_bag
+from transplanter_ident.config.parameters import (
+    EstimatorConfig,
+    FilterOptions,
+    ValiditySettings,
+    VehicleParams,
+)
+from transplanter_ident.config.params_file import load_params
+from transplanter_ident.ekf.joint_ekf import run_sequence
+from transplanter_ident.evaluation.validity import decide_sequence, monitor_for, sample_of
+from transplanter_ident.sim.simulator import SimResult, simulate
+from transplanter_ident.tuning.problem import searched_names
+
+SEEDS = range(6)
+#: the GNSS timing known to 2 ms (1-sigma): one antenna's course cannot show it (validity.setup_reasons)
+COURSE = FilterOptions(measurement="course", delay_uncertainty=0.002)
+#: a single antenna's estimate is ~1.8x less precise: the validity a user would set for it
+RELAXED = ValiditySettings(max_rel_std=0.08)
+
+
+def course_run(result: SimResult, vehicle: VehicleParams | None = None,
+               options: FilterOptions = COURSE) -> tuple[Run, np.ndarray, EstimatorConfig]:
+    vehicle = vehicle or VehicleParams()
+    config = EstimatorConfig(vehicle=vehicle, options=options)
+    epochs = course_epochs(result, vehicle)
+    outputs = run_sequence(config, epochs)
+    t = np.asarray(epochs.t)
+    run = Run(t, outputs, np.interp(t, result.gnss_time, result.truth_cf), np.interp(t, result.gnss_time,
+                                                                                      result.truth_cr))
+    return run, decide_sequence(config, RELAXED, epochs, outputs), config
+
+
+def coverage(runs: list[Run], start: float) -> float:
+    """The share of all epochs from ``start`` on, pooled over the runs, whose +-2 sigma covers both stiffnesses."""
+    return float(np.mean(np.concatenate([(lambda c: c[0] & c[1])(r.covered())[r.t >= start] for r in runs])))
+
+
+def test_the_band_holds_the_truth_on_the_package_simulator() -> None:
+    judged = [course_run(simulate(sine_drive(seed)))[:2] for seed in SEEDS]
+    runs = [run for run, _ in judged]
+    assert coverage(runs, 30.0) >= 0.95
+    figures = judged_figures(judged)
+    assert figures.median <= 0.03 and max(figures.finals) <= 0.06, figures
+    assert figures.valid >= 0.5 and figures.missed <= 0.05, figures
+
+
+def test_the_band_holds_the_truth_on_the_independent_simulator_with_a_lever_arm() -> None:
+    vehicle = VehicleParams(antenna_x=0.8, antenna_y=0.5)
+    judged = [course_run(independent_drive(seed, friction=0.8, vehicle=vehicle), vehicle)[:2] for seed in SEEDS]
+    runs = [run for run, _ in judged]
+    assert coverage(runs, 30.0) >= 0.95
+    figures = judged_figures(judged)
+    assert figures.median <= 0.03 and max(figures.finals) <= 0.08, figures
+
+
+def test_a_far_prior_at_low_speed_converges_instead_of_stalling() -> None:
+    runs = [course_run(simulate(sine_drive(seed, speed=1.5, duration=300.0)))[0] for seed in (0, 3)]
+    assert coverage(runs, 60.0) >= 0.90
+    for run in runs:
+        assert all(abs(e) <= 0.10 for e in run.final_errors()), run.final_errors()
+
+
+def test_without_a_stated_timing_uncertainty_it_is_never_valid_and_says_why() -> None:
+    """A GNSS 10 ms late moves the stiffness ~12 % and the course cannot show it (the tuner's delay NLL is flat)."""
+    result = simulate(sine_drive(0, gnss_delay=0.010))
+    run, valid, config = course_run(result, options=replace(COURSE, delay_uncertainty=0.0))
+    assert not valid.any()
+    assert max(abs(e) for e in run.final_errors()) > 0.08  # what the reason guards against: wrong, and precise-looking
+    assert any("timing" in r for r in monitor_for(config, RELAXED).setup)
+    stated = course_run(result, options=replace(COURSE, delay_uncertainty=0.010))[0]  # told the timing's 1-sigma
+    assert coverage([stated], 30.0) >= 0.95
+
+
+def test_the_course_is_not_taken_for_a_misconfigured_heading() -> None:
+    """With a dual-antenna heading, a course over ground is an ERROR; told it is a course, no reason names it."""
+    result = simulate(sine_drive(0, duration=60.0))
+    run, _, config = course_run(result)
+    monitor = monitor_for(config, RELAXED)
+    epochs = course_epochs(result)
+    reasons = set()
+    for i in range(len(epochs)):
+        reasons.update(monitor.step(sample_of(epochs[i], run.outputs[i], 0)).reasons)
+    assert reasons, "the monitor judged nothing"  # it did decide (the start is never valid)
+    assert not any("course over ground" in r for r in reasons), reasons
+    heading_config = replace(config, options=replace(COURSE, measurement="heading"))
+    heading_outputs = run_sequence(heading_config, epochs)  # the same epochs, the course taken as a heading
+    monitor = monitor_for(heading_config, RELAXED)
+    named = set()
+    for i in range(len(epochs)):
+        named.update(monitor.step(sample_of(epochs[i], heading_outputs[i], 0)).reasons)
+    assert any("course over ground" in r for r in named), named
+
+
+def test_the_measured_lateral_velocity_is_absent_not_made_up() -> None:
+    """One antenna measures no vy: the epochs carry NaN there; the speed is the antenna's |v|."""
+    result = simulate(sine_drive(0, duration=20.0))
+    epochs = course_epochs(result)
+    assert np.all(np.isnan(epochs.lateral_velocity))
+    assert np.all(np.abs(np.asarray(epochs.antenna_lateral_velocity)) <= 1e-12)
+    speed = np.hypot(result.velocity_enu[:, 0], result.velocity_enu[:, 1])
+    assert np.allclose(epochs.longitudinal_velocity, speed[-len(epochs):], rtol=0.0, atol=1e-12)
+    assert math.isclose(float(np.median(epochs.longitudinal_velocity)), 2.0, rel_tol=0.02)
+
+
+def test_the_tuner_tunes_a_course_and_refuses_what_a_course_cannot_calibrate(tmp_path: Path) -> None:
+    """Q/R tune without the unused heading R; the calibration searches are refused with the reason (exit 1)."""
+    bag = tmp_path / "sine"
+    write_sim_bag(simulate(sine_drive(1, duration=40.0)), bag)
+    course = tmp_path / "course.yaml"
+    course.write_text("estimator:\n  ros__parameters:\n    ekf:\n      measurement: course\n", encoding="utf-8")
+    out = tmp_path / "tuned.yaml"
+    done = run_command("tuner", bag, "--params-file", course, "-o", out, *QUICK_TUNE)
+    assert done.returncode == 0, done.stdout + done.stderr
+    tuned = load_params([course, out])
+    assert tuned.config.options.course
+    assert tuned.config.noise.measurement_noise[1] == EstimatorConfig().noise.measurement_noise[1]  # not searched
+    assert searched_names(tuned.config.options) == ("q_vy", "q_r", "q_psi", "r_vy")
+    refused = run_command("tuner", bag, "--params-file", course, "-o", tmp_path / "no.yaml", "--estimate-delay",
+                          *QUICK_TUNE)
+    assert refused.returncode == 1 and "--estimate-delay: not with ekf.measurement course" in refused.stderr
+    assert not (tmp_path / "no.yaml").exists()
