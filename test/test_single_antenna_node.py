@@ -7,14 +7,11 @@ estimate), and its /diagnostics name no heading input and no velocity/heading pa
 
 from __future__ import annotations
 
-import csv
 import math
-import subprocess
-import sys
 from pathlib import Path
 
-import ros_harness
-from ros_harness import ROOT, ros_env, run_scenario
+from ros_harness import run_scenario
+from test_drivers_node import replay_rows
 from test_node import (
     CONFIG,
     HEAD,
@@ -40,18 +37,6 @@ def course_params(tmp_path: Path) -> Path:
     path = tmp_path / "course.yaml"
     path.write_text(COURSE_FILE, encoding="utf-8")
     return path
-
-
-def replay_rows(bag: Path, params_file: Path, tmp_path: Path) -> list[dict[str, float]]:
-    script = Path(sys.executable).parent / "replay"
-    command = [str(script)] if script.is_file() else [sys.executable, "-m", "transplanter_ident.cli.replay"]
-    out = tmp_path / "replay.csv"
-    result = subprocess.run([*command, str(bag), "--params-file", str(CONFIG), "--params-file", str(params_file),
-                             "--csv", str(out), "--quiet"], capture_output=True, text=True, timeout=300, cwd=ROOT,
-                            env={**ros_env(ros_harness.domain_id())})
-    assert result.returncode == 0, result.stdout + result.stderr
-    with out.open() as handle:
-        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(handle)]
 
 
 def test_one_antenna_node_equals_replay_without_a_heading_topic(tmp_path: Path) -> None:
