@@ -11,14 +11,14 @@ The heading measurement needs no h: the heading state integrates r from the firs
 so it holds the measured frame's heading; the prediction runs at the vehicle's forward speed
 (:func:`body_speed`). The step writes the row once per epoch
 (:func:`predict_vy`, into ws[W_VEC, V_VY_ROW]); the update, the speed's covariance and the model
-errors' bias propagation all read it there, so H is written in one place.
+errors' bias propagation all read it there, so H is written in one place. The readers take its three
+non-zero entries only (a hot loop: the step reads the row some twenty times).
 
 A single antenna (``ekf.measurement: course``) measures only the direction of its velocity, its course
 psi + atan2(vy + antenna_x r, vx - antenna_y r). The heading state is then that course linearised,
 psi + (vy + antenna_x r) / vx (:func:`.model.course_row`), z_vy measures nothing (H[0] = 0), the course's
 innovation holds the rest (:func:`course_curvature`), its R is the velocity's over |v|^2
-(:func:`course_variance`), and the model runs at the forward speed under |v| (:func:`course_speed`). The readers take its three
-non-zero entries only (a hot loop: the step reads the row some twenty times).
+(:func:`course_variance`), and the model runs at the forward speed under |v| (:func:`course_speed`).
 """
 
 from __future__ import annotations
@@ -108,9 +108,9 @@ def course_speed(vehicle, speed, motion):
     """A single antenna: the CG's forward speed from the antenna's ``speed``, the mean |v| of the interval's ends.
 
     The antenna moves at (vx - antenna_y r, vy + antenna_x r), so vx = sqrt(|v|^2 - (vy + antenna_x r)^2) +
-    antenna_y r, with ``motion`` = (vy, r) the interval's (prediction.interval_motion). At farm speeds the stiffness is
-    read off a response within a percent of the kinematic one, and |v| exceeds the forward speed by u^2 / 2
-    (half a percent at u = 0.1 rad, in phase with the steering) and by -antenna_y r.
+    antenna_y r, with ``motion`` = (vy, r) over the interval (prediction's ``interval_motion``). At farm speeds
+    the stiffness is read off a response within a percent of the kinematic one, and |v| exceeds the forward
+    speed by u^2 / 2 (half a percent at u = 0.1 rad, in phase with the steering) and by -antenna_y r.
     """
     vy, r = motion
     lateral = vy + vehicle[VEH_ANTENNA_X] * r

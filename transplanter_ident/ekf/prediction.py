@@ -3,8 +3,9 @@
 :func:`make_prediction` compiles, for one state size, the three helpers of the filter step
 (:mod:`.kernels`) that know what the motion states are: their reset from a measurement, the
 stiffness a state holds, and the prediction through :mod:`.model`'s discretisation, with its
-Jacobian F = df/dx (eq. 13) and df/dvx, and (``predict_inertia_gain``) df/d ln Iz, and (``course_model_speed``) a single antenna's speed from a trial of the motion over the interval. With relaxing tires the slip lags d_f, d_r follow the motion
-states (layout.N_LAG).
+Jacobian F = df/dx (eq. 13) and df/dvx, (``predict_inertia_gain``) df/d ln Iz, and (``course_model_speed``)
+a single antenna's forward speed from a trial of the motion over the interval. With relaxing tires the slip
+lags d_f, d_r follow the motion states (layout.N_LAG).
 """
 
 from __future__ import annotations

@@ -26,7 +26,7 @@ of these hold over a window of data time (the same decision online and offline):
 * trusted input (issue #14): at most ``max_suspect_fraction`` of the window's epochs follow a rejected
   input sample (:attr:`Sample.rejected`, in processing order: the same online and offline) or were gated,
   rejected or rolled back by the filter;
-* a set-up the data can check (:func:`setup_reasons`): one antenna's course cannot show a GNSS timing error.
+* a set-up the data can vouch for (:func:`setup_reasons`): one antenna's course cannot show a timing error.
 
 Hysteresis: valid only after every check held for ``hold_on`` s; invalid once any has failed
 for ``hold_off`` s (at once for the plausibility and bound checks). The window checks run every
@@ -218,7 +218,7 @@ class ValidityMonitor:
                                "check frames.velocity / frames.heading (ENU or NED)")
             if not self.course and self._course_over_ground(predicted):
                 reasons.append("the heading looks like a course over ground (vy stays ~0 while the vehicle "
-                               "turns): use a dual-antenna heading")
+                               "turns): use a dual-antenna heading, or ekf.measurement course for one antenna")
         return reasons
 
     def _course_over_ground(self, window: list[Sample]) -> bool:
