@@ -20,7 +20,8 @@ default ``heading`` mode (5 states, z = [vy, psi]). The innovation gate is opene
 Rows: euler/linear (eq. 10, the paper's model), exact/log (the default model), and extra
 exact/log/heading (the default measurement), the same with relaxing tires (``vehicle.relaxation_length``:
 two more states, a larger matrix exponential; the lags start once the stiffness is known, as they
-do on this sequence), plus the parallel batch (``tuning.batch_objective``,
+do on this sequence), a single antenna (``measurement: course``: psi taken as the course, one more
+discretisation per step for its speed), plus the parallel batch (``tuning.batch_objective``,
 all threads), which the tuner actually uses, as ns per candidate-step.
 
 Run: ``python bench/ekf_bench.py [--repeats N] [--steps N]``; ``bench/run.py`` calls :func:`main`.
@@ -72,6 +73,7 @@ CASES = (
     Case("exact/log, z=[vy,r]", "exact", "log", "yaw_rate", "exact"),
     Case("exact/log, z=[vy,psi] (default, extra)", "exact", "log", "heading", None),
     Case("  with relaxing tires, 0.3 m (extra)", "exact", "log", "heading", None, 0.3),
+    Case("  one antenna, z=[course] (extra)", "exact", "log", "course", None),
 )
 
 

@@ -16,12 +16,16 @@ valid epochs missed the truth more than 5 % of the time, with their conditions.
 linear tire, the project's sensor noise): sine steers only, speed, stiffness, vehicle and GNSS rate
 drawn as above, and an antenna lever arm (x -0.5-1.0 m, y +-0.6 m) the estimator is told.
 
+``--course``: one antenna (``ekf.measurement: course``, the velocity and steering streams only; the GNSS
+timing stated to 2 ms as ``ekf.delay_uncertainty``, and ``validity.max_rel_std`` 0.08 for its precision).
+
 ``--relaxation LOW HIGH``: every drive's tires relax over a length drawn from [LOW, HIGH] m (from a
 generator of its own, so the other conditions are those of the same seed without it) that the
 estimator is not told; each draw is then also judged without the validity's relaxation check
 (``validity.max_relaxation_*`` 100), and the pooled line says both.
 
-Run: ``.venv/bin/python bench/random_drives.py [--draws 40] [--seed 0] [--independent] [--relaxation LOW HIGH]``
+Run: ``.venv/bin/python bench/random_drives.py [--draws 40] [--seed 0] [--independent] [--course]
+[--relaxation LOW HIGH]``
 """
 
 from __future__ import annotations
@@ -35,11 +39,19 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 
-from drives import ValidityFigures, pooled_validity_figures, random_drive  # noqa: E402
+from drives import Run, ValidityFigures, judged_figures, pooled_validity_figures, random_drive  # noqa: E402
+from helpers import course_epochs  # noqa: E402
 from independent_sim import independent_drive  # noqa: E402
 from test_validity import epochs_of  # noqa: E402
 
-from transplanter_ident.config.parameters import EstimatorConfig, ValiditySettings, VehicleParams  # noqa: E402
+from transplanter_ident.config.parameters import (  # noqa: E402
+    EstimatorConfig,
+    FilterOptions,
+    ValiditySettings,
+    VehicleParams,
+)
+from transplanter_ident.ekf.joint_ekf import run_sequence  # noqa: E402
+from transplanter_ident.evaluation.validity import decide_sequence  # noqa: E402
 from transplanter_ident.sim.simulator import SimResult, simulate  # noqa: E402
 
 START = 30.0  # s
@@ -68,12 +80,28 @@ def independent_random_drive(rng: np.random.Generator, seed: int,
 UNCHECKED = ValiditySettings(max_relaxation_sigmas=100.0, max_relaxation_shift=100.0)
 
 
+#: ``--course``: a single antenna, the GNSS timing stated to 2 ms, and the validity a user would set for its precision
+COURSE = FilterOptions(measurement="course", delay_uncertainty=0.002)
+COURSE_VALIDITY = ValiditySettings(max_rel_std=0.08)
+
+
 def judge(result: SimResult, vehicle: VehicleParams, settings: ValiditySettings | None = None) -> ValidityFigures:
     """The drive through the estimator configured with its vehicle: validity and coverage from START on."""
     def epochs_for(drive: SimResult):  # noqa: ANN202 - the validity's epochs, with the vehicle's lever arm
         return epochs_of(drive, antenna_x=vehicle.antenna_x, antenna_y=vehicle.antenna_y)
 
     return pooled_validity_figures([(result, EstimatorConfig(vehicle=vehicle))], epochs_for, START, settings)
+
+
+def judge_course(result: SimResult, vehicle: VehicleParams) -> ValidityFigures:
+    """:func:`judge` with one antenna (its velocity and steering streams, ``ekf.measurement: course``)."""
+    config = EstimatorConfig(vehicle=vehicle, options=COURSE)
+    epochs = course_epochs(result, vehicle)
+    outputs = run_sequence(config, epochs)
+    t = np.asarray(epochs.t)
+    run = Run(t, outputs, np.interp(t, result.gnss_time, result.truth_cf), np.interp(t, result.gnss_time,
+                                                                                      result.truth_cr))
+    return judged_figures([(run, decide_sequence(config, COURSE_VALIDITY, epochs, outputs))], START)
 
 
 def pooled_line(rows: list[tuple[ValidityFigures, str]]) -> str:
@@ -90,6 +118,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--draws", type=int, default=40)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--independent", action="store_true", help="drives of test/independent_sim.py")
+    parser.add_argument("--course", action="store_true", help="one antenna: ekf.measurement course, the timing "
+                        "stated to 2 ms (ekf.delay_uncertainty), validity.max_rel_std 0.08")
     parser.add_argument("--relaxation", nargs=2, type=float, metavar=("LOW", "HIGH"),
                         help="tires relaxing over a length drawn from [LOW, HIGH] m, not told to the estimator")
     args = parser.parse_args(argv)
@@ -104,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
             sim, what = random_drive(rng, args.seed * 1000 + index)
             result, vehicle = simulate(replace(sim, relaxation_length=length)), sim.vehicle
         what += f", relaxation {length:.2f} m" if args.relaxation else ""
-        figures = judge(result, vehicle)
+        figures = judge_course(result, vehicle) if args.course else judge(result, vehicle)
         rows.append((figures, what))
         if args.relaxation:
             unchecked.append((judge(result, vehicle, UNCHECKED), what))
