@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 from drives import Run, judged_figures, sine_drive
-from helpers import QUICK_TUNE, course_epochs, run_command
+from helpers import QUICK_TUNE, assembler_settings, course_epochs, run_command
 from independent_sim import independent_drive
 
 from transplanter_ident.bags import write_sim_bag
@@ -37,6 +37,8 @@ from transplanter_ident.config.parameters import (
 )
 from transplanter_ident.config.params_file import load_params
 from transplanter_ident.ekf.joint_ekf import run_sequence
+from transplanter_ident.epochs.assembler import EpochAssembler, assemble
+from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.evaluation.validity import decide_sequence, monitor_for, sample_of
 from transplanter_ident.sim.simulator import SimResult, simulate
 from transplanter_ident.tuning.problem import searched_names
@@ -149,3 +151,28 @@ def test_the_tuner_tunes_a_course_and_refuses_what_a_course_cannot_calibrate(tmp
                           *QUICK_TUNE)
     assert refused.returncode == 1 and "--estimate-delay: not with ekf.measurement course" in refused.stderr
     assert not (tmp_path / "no.yaml").exists()
+
+
+def test_reversing_through_a_stop_is_told_from_the_course() -> None:
+    """Reversing, the velocity points backwards: the epochs keep the vehicle's heading and take a negative speed.
+
+    Synthetic (the simulators drive forwards only): the vehicle points 0.3 rad, drives 1.5 m/s, stops over 2 s,
+    reverses at 1 m/s for 6 s, stops and drives on; 5 Hz velocity, 50 Hz steering at 0.
+    """
+    heading, samples = 0.3, []
+    for k in range(0, 50 * 40 + 1):
+        t = k / 50.0
+        samples.append(("steering", t, (0.0,)))
+        if k % 10 == 0:
+            speed = float(np.interp(t, [0, 10, 12, 14, 20, 22, 24, 40], [1.5, 1.5, 0.0, -1.0, -1.0, 0.0, 1.5, 1.5]))
+            samples.append(("velocity", t, (speed * math.cos(heading), speed * math.sin(heading))))
+    assembler = EpochAssembler(assembler_settings(VehicleParams(), course=True))
+    epochs = EpochArrays(assemble(assembler, samples))
+    t, speed = np.asarray(epochs.t), np.asarray(epochs.speed)
+    steady = np.abs(np.asarray(epochs.longitudinal_velocity)) >= 0.3
+    assert np.all(speed[(t > 14.5) & (t < 20.0)] < -0.9)  # reversing: the filter holds the stiffness (REVERSING)
+    assert np.all(speed[(t > 1.0) & (t < 10.0)] > 1.4) and np.all(speed[t > 25.0] > 1.4)
+    off = np.remainder(np.asarray(epochs.heading)[steady] - heading + math.pi, 2.0 * math.pi) - math.pi
+    assert np.allclose(off, 0.0, atol=1e-9)  # the vehicle's heading (mod 2 pi, unwrapped through the stops)
+    reasons = {r.reason.split(" ")[0] for r in assembler.drain_rejections()}
+    assert reasons <= {"yaw"}, reasons  # only the stop's noisy directions may be beyond the yaw-rate limit

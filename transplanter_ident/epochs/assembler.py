@@ -7,7 +7,8 @@ Here, for each GNSS epoch t_k (velocity and heading paired by stamp, :mod:`.pair
   minus ``vehicle.heading_offset`` (the source's yaw relative to the vehicle x axis, e.g. a
   dual-antenna baseline mounted across the vehicle); unwrapped across +-pi. A single antenna
   (``ekf.measurement: course``, :attr:`~.settings.AssemblerSettings.course`): no heading samples; each
-  velocity's direction is its epoch's heading, which the filter models as the antenna's course;
+  velocity's direction is its epoch's heading, which the filter models as the antenna's course
+  (reversing, :mod:`.course`: + pi, and the speed negative);
 * velocity: ENU or NED, rotated into the body frame by the heading; or already in body axes at
   the antenna (a nav_msgs/Odometry twist, :meth:`EpochAssembler.add_body_velocity`, turned by
   ``body_velocity_rotation`` when its child frame is the heading source's);
@@ -47,6 +48,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 
 from transplanter_ident.epochs import checks
+from transplanter_ident.epochs.course import CourseTracker
 from transplanter_ident.epochs.epoch import Epoch, Rejection
 from transplanter_ident.epochs.frames import (
     body_velocity,
@@ -106,6 +108,7 @@ class EpochAssembler:
         self.uncovered_epochs = 0  # epochs formed before the steering covered their interval
         self._previous: _Anchor | None = None
         self._beyond_limits = 0  # consecutive epochs dropped for a physical limit
+        self._course = CourseTracker()  # a single antenna: which way the vehicle moves (settings.course)
 
     @property
     def pairing(self) -> PairingStats:
@@ -215,15 +218,15 @@ class EpochAssembler:
         return self._pair("velocity", stamp, payload)
 
     def _course_epoch(self, stamp: float, payload: tuple[str, float, float, float, float]) -> list[Epoch]:
-        """A single antenna: the velocity's own direction is the epoch's heading (a course), its vy 0 by construction."""
+        """A single antenna: the velocity's own direction is the epoch's heading (a course; + pi and -|v| reversing)."""
         frame, east, north, variance_east, variance_north = payload
         if frame != "enu":
             return self._reject("velocity", stamp, "a velocity in body axes has no course: ekf.measurement course "
                                 "needs a velocity in ENU or NED", checks.OTHER)
-        course = math.atan2(north, east)
-        vx_ant, vy_ant = body_velocity(east, north, course)
-        self._pending.append((stamp - self.settings.gnss_delay, vx_ant, vy_ant, course,
-                              lateral_variance(variance_east, variance_north, course), 0.0))
+        heading = self._course.heading(east, north)
+        vx_ant, vy_ant = body_velocity(east, north, heading)  # vy 0 by construction
+        self._pending.append((stamp - self.settings.gnss_delay, vx_ant, vy_ant, heading,
+                              lateral_variance(variance_east, variance_north, heading), 0.0))
         return self._flush()
 
     def _stamp_ok(self, stream: str, stamp: float, motion_time: float) -> bool:
