@@ -39,8 +39,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 
-from drives import Run, ValidityFigures, judged_figures, pooled_validity_figures, random_drive  # noqa: E402
-from helpers import course_epochs  # noqa: E402
+from drives import ValidityFigures, judged_figures, pooled_validity_figures, random_drive, run_course  # noqa: E402
 from independent_sim import independent_drive  # noqa: E402
 from test_validity import epochs_of  # noqa: E402
 
@@ -50,7 +49,6 @@ from transplanter_ident.config.parameters import (  # noqa: E402
     ValiditySettings,
     VehicleParams,
 )
-from transplanter_ident.ekf.joint_ekf import run_sequence  # noqa: E402
 from transplanter_ident.evaluation.validity import decide_sequence  # noqa: E402
 from transplanter_ident.sim.simulator import SimResult, simulate  # noqa: E402
 
@@ -96,12 +94,8 @@ def judge(result: SimResult, vehicle: VehicleParams, settings: ValiditySettings 
 def judge_course(result: SimResult, vehicle: VehicleParams) -> ValidityFigures:
     """:func:`judge` with one antenna (its velocity and steering streams, ``ekf.measurement: course``)."""
     config = EstimatorConfig(vehicle=vehicle, options=COURSE)
-    epochs = course_epochs(result, vehicle)
-    outputs = run_sequence(config, epochs)
-    t = np.asarray(epochs.t)
-    run = Run(t, outputs, np.interp(t, result.gnss_time, result.truth_cf), np.interp(t, result.gnss_time,
-                                                                                      result.truth_cr))
-    return judged_figures([(run, decide_sequence(config, COURSE_VALIDITY, epochs, outputs))], START)
+    run, epochs = run_course(result, config)
+    return judged_figures([(run, decide_sequence(config, COURSE_VALIDITY, epochs, run.outputs))], START)
 
 
 def pooled_line(rows: list[tuple[ValidityFigures, str]]) -> str:

@@ -24,8 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 
-from drives import Run, sine_drive  # noqa: E402
-from helpers import course_epochs  # noqa: E402
+from drives import run_course, sine_drive  # noqa: E402
 from independent_sim import independent_drive  # noqa: E402
 
 from transplanter_ident.config.parameters import (  # noqa: E402
@@ -34,7 +33,6 @@ from transplanter_ident.config.parameters import (  # noqa: E402
     ValiditySettings,
     VehicleParams,
 )
-from transplanter_ident.ekf.joint_ekf import run_sequence  # noqa: E402
 from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD  # noqa: E402
 from transplanter_ident.evaluation.validity import decide_sequence  # noqa: E402
 from transplanter_ident.sim.simulator import SimResult, simulate  # noqa: E402
@@ -67,12 +65,8 @@ def row_figures(name: str, seeds: int, delay_uncertainty: float) -> str:
                                                                     delay_uncertainty=delay_uncertainty))
     valid_shares, missed, outside, finals, stds = [[] for _ in LIMITS], [], [], [], []
     for seed in range(seeds):
-        result = drive(name, seed)
-        epochs = course_epochs(result, vehicle)
-        outputs = run_sequence(config, epochs)
-        t = np.asarray(epochs.t)
-        run = Run(t, outputs, np.interp(t, result.gnss_time, result.truth_cf),
-                  np.interp(t, result.gnss_time, result.truth_cr))
+        run, epochs = run_course(drive(name, seed), config)
+        outputs, t = run.outputs, run.t
         after = t >= 30.0
         front, rear = run.covered()
         miss = ~(front & rear)

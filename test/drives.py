@@ -12,7 +12,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
 
 import numpy as np
-from helpers import epochs_from_result, sim_samples
+from helpers import course_epochs, epochs_from_result, sim_samples
 
 from transplanter_ident.config.parameters import EstimatorConfig, NoiseParams, ValiditySettings, VehicleParams
 from transplanter_ident.ekf.joint_ekf import run_sequence
@@ -152,6 +152,15 @@ def run_drive(sim: SimConfig | SimResult, config: EstimatorConfig | None = None,
     true_cf = np.interp(epochs.t, result.gnss_time, result.truth_cf)
     true_cr = np.interp(epochs.t, result.gnss_time, result.truth_cr)
     return Run(np.asarray(epochs.t), outputs, true_cf, true_cr)
+
+
+def run_course(result: SimResult, config: EstimatorConfig) -> tuple[Run, EpochArrays]:
+    """One antenna (``ekf.measurement: course``): the velocity and steering streams through the filter; and the epochs."""
+    epochs = course_epochs(result, config.vehicle)
+    outputs = run_sequence(config, epochs)
+    t = np.asarray(epochs.t)
+    return Run(t, outputs, np.interp(t, result.gnss_time, result.truth_cf),
+               np.interp(t, result.gnss_time, result.truth_cr)), epochs
 
 
 def median_and_worst(values: list[float]) -> tuple[float, float]:

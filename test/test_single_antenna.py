@@ -24,7 +24,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from drives import Run, judged_figures, sine_drive
+from drives import Run, judged_figures, run_course, sine_drive
 from helpers import QUICK_TUNE, assembler_settings, course_epochs, run_command
 from independent_sim import independent_drive
 
@@ -52,14 +52,9 @@ RELAXED = ValiditySettings(max_rel_std=0.08)
 
 def course_run(result: SimResult, vehicle: VehicleParams | None = None,
                options: FilterOptions = COURSE) -> tuple[Run, np.ndarray, EstimatorConfig]:
-    vehicle = vehicle or VehicleParams()
-    config = EstimatorConfig(vehicle=vehicle, options=options)
-    epochs = course_epochs(result, vehicle)
-    outputs = run_sequence(config, epochs)
-    t = np.asarray(epochs.t)
-    run = Run(t, outputs, np.interp(t, result.gnss_time, result.truth_cf), np.interp(t, result.gnss_time,
-                                                                                      result.truth_cr))
-    return run, decide_sequence(config, RELAXED, epochs, outputs), config
+    config = EstimatorConfig(vehicle=vehicle or VehicleParams(), options=options)
+    run, epochs = run_course(result, config)
+    return run, decide_sequence(config, RELAXED, epochs, run.outputs), config
 
 
 def coverage(runs: list[Run], start: float) -> float:
