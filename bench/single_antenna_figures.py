@@ -16,6 +16,7 @@ Run: ``.venv/bin/python bench/single_antenna_figures.py [--seeds 6] [--delay-unc
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -24,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 
-from drives import run_course, sine_drive  # noqa: E402
+from drives import LATE_DROP, run_course, sine_drive  # noqa: E402
 from independent_sim import independent_drive  # noqa: E402
 
 from transplanter_ident.config.parameters import (  # noqa: E402
@@ -35,14 +36,20 @@ from transplanter_ident.config.parameters import (  # noqa: E402
 )
 from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD  # noqa: E402
 from transplanter_ident.evaluation.validity import decide_sequence  # noqa: E402
+from transplanter_ident.sim.signals import step_steering  # noqa: E402
 from transplanter_ident.sim.simulator import SimResult, simulate  # noqa: E402
 
 ARM = VehicleParams(antenna_x=0.8, antenna_y=0.5)
 #: row -> (simulator, its overrides, the vehicle the estimator is told)
-ROWS: dict[str, tuple[str, dict[str, float], VehicleParams]] = {
+ROWS: dict[str, tuple[str, dict[str, object], VehicleParams]] = {
     "2 m/s": ("package", {}, VehicleParams()),
     "1.5 m/s, 300 s": ("package", {"speed": 1.5, "duration": 300.0}, VehicleParams()),
     "1.2 m/s, 300 s": ("package", {"speed": 1.2, "duration": 300.0}, VehicleParams()),
+    "steering offset 2 deg": ("package", {"steering_offset": math.radians(2.0)}, VehicleParams()),
+    "stiffness dropping 40 % at 75 s, 150 s": ("package", {"stiffness": LATE_DROP, "duration": 150.0}, VehicleParams()),
+    "paper's step: 20 deg held at 1 m/s, 90 s": ("package", {"speed": 1.0, "duration": 90.0, "steering":
+                                                  step_steering(math.radians(20.0), start=2.0, ramp=0.5)},
+                                                 VehicleParams()),
     "GNSS 5 ms late, unset": ("package", {"gnss_delay": 0.005}, VehicleParams()),
     "GNSS 10 ms late, unset": ("package", {"gnss_delay": 0.010}, VehicleParams()),
     "independent mu 0.8, antenna (0.8, 0.5) m": ("independent", {"friction": 0.8}, ARM),

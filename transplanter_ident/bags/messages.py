@@ -33,6 +33,7 @@ from rosbags.typesys import Stores, get_typestore
 from transplanter_ident.config.schema import PARAMS
 from transplanter_ident.epochs.checks import OTHER, joint_angle
 from transplanter_ident.epochs.frames import YAW_VARIANCE_IMU, YAW_VARIANCE_POSE, stamp_seconds
+from transplanter_ident.epochs.settings import INPUT_ROLES
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 
@@ -47,7 +48,7 @@ FLOAT64 = "std_msgs/msg/Float64"
 FLOAT32 = "std_msgs/msg/Float32"
 VECTOR3_STAMPED = "geometry_msgs/msg/Vector3Stamped"
 
-ROLES = ("velocity", "heading", "steering")
+ROLES = INPUT_ROLES
 TRUTH_STIFFNESS_TOPIC = "/sim/cornering_stiffness"  # Vector3Stamped: x = Cf, y = Cr
 TRUTH_VELOCITY_TOPIC = "/sim/body_velocity"  # TwistStamped at the CG: linear.x vx, linear.y vy, angular.z r
 

@@ -41,7 +41,6 @@ from transplanter_ident.ekf.layout import (
     S_CHANGE_HOLD,
     S_CHANGE_OFFSET_Q,
     S_CHANGE_Q,
-    S_COURSE,
     S_CUSUM_CAP,
     S_CUSUM_SCALE,
     S_CUSUM_THRESHOLD,
@@ -124,7 +123,6 @@ class FilterArrays:
         settings[S_METHOD] = EXACT if options.discretization == "exact" else EULER
         settings[S_LOG] = 1.0 if log_state else 0.0
         settings[S_HEADING] = 1.0 if heading else 0.0
-        settings[S_COURSE] = 1.0 if options.course else 0.0
         settings[S_MIN_SPEED] = options.min_speed
         settings[S_LOW] = to_state(options.stiffness_bounds[0])
         settings[S_HIGH] = to_state(options.stiffness_bounds[1])

@@ -103,7 +103,6 @@ from transplanter_ident.ekf.layout import (
     O_VY_MODEL,
     S_ANTENNA_X,
     S_CHANGE_DETECTION,
-    S_COURSE,
     S_GATE,
     S_HIGH,
     S_LOG,
@@ -120,6 +119,7 @@ from transplanter_ident.ekf.layout import (
     V_BACKUP_CHANGE,
     V_BACKUP_MODEL,
     V_BACKUP_X,
+    VEH_COURSE,
     VEH_RELAXATION,
     W_BACKUP_P,
     W_VEC,
@@ -268,7 +268,7 @@ def make_kernels(heading, lagged=False):
 
         dt = t - memo[M_T_PREV]
         out[O_DT] = dt
-        course = heading and settings[S_COURSE] > 0.5  # a single antenna: psi is its course, the one measurement
+        course = heading and vehicle[VEH_COURSE] > 0.5  # a single antenna: psi is its course, the one measurement
         vx = (course_model_speed(x, vehicle, settings, dt, speed, steering, steering_rate, ws) if course  # |v|
               else body_speed(x, n, settings[S_ANTENNA_X], speed))  # the model's speed; the measurement's is speed
         for i in range(n):

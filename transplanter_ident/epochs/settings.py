@@ -19,11 +19,13 @@ from transplanter_ident.config.schema import FRAMES
 from transplanter_ident.epochs.steering_line import ackermann_ratio, single_track_angle
 from transplanter_ident.epochs.steering_play import SteeringPlay, without_play
 
+#: the estimator's inputs (topics.<role>), in the order a bag summary names them
+INPUT_ROLES = ("velocity", "heading", "steering")
+
 
 def input_roles(params: EstimatorParams) -> tuple[str, ...]:
     """The inputs the node subscribes and a bag must hold: a single antenna (``ekf.measurement: course``) has no heading."""
-    roles = ("velocity", "heading", "steering")
-    return tuple(r for r in roles if not (r == "heading" and params.config.options.course))
+    return tuple(r for r in INPUT_ROLES if not (r == "heading" and params.config.options.course))
 
 
 def steering_sensor(vehicle: VehicleParams) -> dict[str, float]:

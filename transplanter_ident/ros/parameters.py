@@ -30,9 +30,10 @@ from transplanter_ident.config.params_file import (
     params_to_flat,
 )
 from transplanter_ident.config.schema import PARAMS, SCHEMA, default_values
+from transplanter_ident.epochs.settings import INPUT_ROLES
 from transplanter_ident.evaluation.health import HealthThresholds
 
-ROLES = ("velocity", "heading", "steering")
+ROLES = INPUT_ROLES
 ODOMETRY = "nav_msgs/msg/Odometry"
 
 
