@@ -417,9 +417,9 @@ def test_online_equals_offline(tmp_path: Path, executor: str) -> None:
 
 
 def test_a_burst_of_messages_is_queued_not_dropped(tmp_path: Path) -> None:
-    """A bag's first messages sent at once, without a pause (under 100 per input): every epoch, replay's numbers.
+    """A bag's first messages sent at once, without a pause: every epoch, replay's numbers.
 
-    The node's inputs hold ``adapters.INPUT_QUEUE_DEPTH`` (100) messages; qos_profile_sensor_data's 5 would
+    The node's inputs hold ``adapters.INPUT_QUEUE_DEPTH`` messages; qos_profile_sensor_data's 5 would
     drop most of such a burst while the node is busy with the first epochs.
     """
     from transplanter_ident.ros.adapters import INPUT_QUEUE_DEPTH

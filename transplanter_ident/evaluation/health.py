@@ -240,6 +240,14 @@ class HealthMonitor:
     def on_latency(self, seconds: float) -> None:
         self.latency.add(seconds)
 
+    def summary(self) -> str:
+        """Totals: messages per input since start; epochs filtered and published since start or the last reset."""
+        received = ", ".join(f"{monitor.messages} {name}" for name, monitor in self.inputs.items())
+        f = self._filter
+        published = sum(count for status, count in f.statuses.items() if should_publish(status)) - f.unpublished
+        return (f"received {received} message(s); {sum(f.statuses.values())} epoch(s) filtered, {published} "
+                f"published, {f.unpublished} withheld as not finite, {f.epoch_rejected} dropped before the filter")
+
     # ------------------------------------------------------------------ levels
 
     def report(self, now: float) -> list[HealthReport]:

@@ -38,9 +38,10 @@ from transplanter_ident.epochs.epoch import Epoch
 from transplanter_ident.epochs.frames import YAW_VARIANCE_IMU, YAW_VARIANCE_POSE, stamp_seconds
 from transplanter_ident.evaluation.health_report import HealthReport
 
-#: messages each input holds while the node is busy: 2 s of 50 Hz steering, so a stall of the node's process
-#: (a busy vehicle computer) delays epochs instead of dropping samples (qos_profile_sensor_data holds 5)
-INPUT_QUEUE_DEPTH = 100
+#: messages each input holds while the node is busy: 20 s of 50 Hz steering, so a stall of the node's process
+#: (a busy vehicle computer) delays epochs instead of dropping samples (qos_profile_sensor_data holds 5). A frozen
+#: process's transport holds fewer: Fast DDS's shared-memory port takes 512 messages of all inputs together.
+INPUT_QUEUE_DEPTH = 1000
 #: the inputs' QoS: best effort and volatile accept every publisher's QoS (as qos_profile_sensor_data), deeper
 INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=INPUT_QUEUE_DEPTH,
                        reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)

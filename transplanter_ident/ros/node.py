@@ -383,6 +383,7 @@ class EstimatorNode(Node):
     def destroy_node(self) -> None:
         """Close the latency log; give reliable subscribers a moment to take the last epoch, then destroy."""
         self._save_learned_state(force=True)
+        self.get_logger().info(f"shutting down: {self._health.summary()}")
         if self._latency_log is not None:
             self._latency_log.close()
             self._latency_log = None
