@@ -34,6 +34,14 @@ def steering_sensor(vehicle: VehicleParams) -> dict[str, float]:
     return {"steering_scale": vehicle.steering_scale, "steering_play": vehicle.steering_play, "ackermann": ratio}
 
 
+def antenna_slip_per_tan(vehicle: VehicleParams) -> float:
+    """The antenna's kinematic sideslip per tan(wheel angle), (lr + antenna_x) / L.
+
+    One antenna's course less it turns as the vehicle does (:mod:`.course`).
+    """
+    return (vehicle.lr + vehicle.antenna_x) / (vehicle.lf + vehicle.lr)
+
+
 @dataclass(frozen=True)
 class AssemblerSettings:
     """How samples become epochs (the limits default to none; :meth:`from_params` takes the vehicle's)."""
@@ -59,6 +67,7 @@ class AssemblerSettings:
     steering_play: float = 0.0  # rad of wheel angle, the linkage's free travel (steering_play; sign: where it lies)
     ackermann: float = 0.0  # steering_line.single_track_angle's ratio (0: the sensor gives the single-track angle)
     course: bool = False  # a single antenna (ekf.measurement course): each velocity's direction is its epoch's heading
+    antenna_slip_per_tan: float = 0.0  # the antenna's kinematic sideslip per tan(wheel angle), (lr + antenna_x) / L
 
     @classmethod
     def from_params(cls, params: EstimatorParams) -> AssemblerSettings:
@@ -80,6 +89,7 @@ class AssemblerSettings:
                    max_stamp_jump=params.gnss.max_stamp_jump, max_speed=vehicle.max_speed,
                    max_lateral_speed=vehicle.max_lateral_speed, max_yaw_rate=vehicle.max_yaw_rate,
                    max_steering_rate=vehicle.max_steering_rate, course=params.config.options.course,
+                   antenna_slip_per_tan=antenna_slip_per_tan(vehicle),
                    **steering_sensor(vehicle))
 
     def __post_init__(self) -> None:
