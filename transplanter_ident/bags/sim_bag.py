@@ -7,6 +7,7 @@ real drivers do (issue #12, :mod:`transplanter_ident.sim.drivers` has one preset
 * ``velocity_type odometry``: a nav_msgs/Odometry whose twist is the antenna's velocity in the child
   (body) frame; with ``heading_type odometry`` on the same topic one message carries both;
 * ``heading_type pose-cov``: a geometry_msgs/PoseWithCovarianceStamped orientation;
+* ``heading_type none``: no heading at all, a single antenna (the estimator reads the velocity's course);
 * ``heading_lag`` (+- ``heading_lag_jitter``): the heading stamped that much after the velocity of
   its epoch, as a driver that stamps it on arrival (ublox: 35-45 ms);
 * ``heading_offset``: the heading source's yaw relative to the vehicle x axis (a dual-antenna
@@ -84,8 +85,16 @@ class SimBagOptions:
         for name in ("heading_lag", "heading_lag_jitter", "heading_offset"):
             if not math.isfinite(getattr(self, name)):
                 raise ValueError(f"{name} must be finite")
+        if not self.has_heading and self.velocity_type == "odometry":
+            raise ValueError("heading_type none (one antenna) needs a ground velocity: an Odometry twist in body "
+                             "axes has no course")
         if self.heading_lag_jitter < 0.0 or self.heading_lag - self.heading_lag_jitter < 0.0:
             raise ValueError("heading_lag - heading_lag_jitter must be >= 0 (a heading cannot arrive early)")
+
+    @property
+    def has_heading(self) -> bool:
+        """A heading source is written (not a single antenna's velocity alone)."""
+        return self.heading_type != "none"
 
     @property
     def one_odometry(self) -> bool:
@@ -108,7 +117,7 @@ def _order(result: Any, opt: SimBagOptions, rng: np.random.Generator) -> tuple[l
     n_gnss, n_steer = len(gnss_ns), len(ns["steer"])
     kinds = [np.full(n_steer, _STEER_LAST if opt.gnss_first else _STEER), np.full(n_gnss, _VEL)]
     times, index = [ns["steer"], gnss_ns], [np.arange(n_steer), np.arange(n_gnss)]
-    if not opt.one_odometry:
+    if opt.has_heading and not opt.one_odometry:
         kinds.append(np.full(n_gnss, _HEAD))
         times.append(heading_ns)
         index.append(np.arange(n_gnss))
@@ -219,6 +228,10 @@ def _write_heading(bag: BagWriter, opt: SimBagOptions, stamp: int, gnss: dict[st
         bag.write_quaternion(opt.heading_topic, stamp, q, frame_id=opt.gnss_frame_id)
 
 
+#: what one antenna needs (README "One antenna"): the course; the GNSS timing stated, as a course cannot show it
+#: (the simulator's stamping delay is exact; 2 ms is a receiver's documented latency's spread); its precision
+ONE_ANTENNA = {"ekf.measurement": "course", "ekf.delay_uncertainty": 0.002, "validity.max_rel_std": 0.08}
+
 #: SimBagOptions type names -> the estimator's topics.*_type values
 _TYPE_NAMES = {"twist": "TwistStamped", "twist-cov": "TwistWithCovarianceStamped", "odometry": "Odometry",
                "quaternion": "QuaternionStamped", "imu": "Imu", "pose-cov": "PoseWithCovarianceStamped",
@@ -233,13 +246,13 @@ def reading_parameters(opt: SimBagOptions, *, gnss_delay: float = 0.0, antenna_x
     Odometry velocity: the child frame's origin).
     """
     reported = {"ekf.measurement_noise_from_covariance": True} if opt.report_noise else {}
+    heading = ({"topics.heading": opt.heading_topic, "topics.heading_type": _TYPE_NAMES[opt.heading_type],
+                "frames.heading": opt.heading_frame, "vehicle.heading_offset": float(opt.heading_offset)}
+               if opt.has_heading else ONE_ANTENNA)
     return {
         **reported,
-        "topics.velocity": opt.velocity_topic, "topics.heading": opt.heading_topic,
-        "topics.steering": opt.steering_topic, "topics.velocity_type": _TYPE_NAMES[opt.velocity_type],
-        "topics.heading_type": _TYPE_NAMES[opt.heading_type], "topics.steering_type": _TYPE_NAMES[opt.steering_type],
-        "frames.velocity": opt.velocity_frame, "frames.heading": opt.heading_frame,
-        "steering.joint_name": opt.joint_name, "gnss.delay": float(gnss_delay),
-        "vehicle.heading_offset": float(opt.heading_offset), "vehicle.antenna_x": float(antenna_x),
-        "vehicle.antenna_y": float(antenna_y),
+        "topics.velocity": opt.velocity_topic, "topics.steering": opt.steering_topic,
+        "topics.velocity_type": _TYPE_NAMES[opt.velocity_type], "topics.steering_type": _TYPE_NAMES[opt.steering_type],
+        "frames.velocity": opt.velocity_frame, **heading, "steering.joint_name": opt.joint_name,
+        "gnss.delay": float(gnss_delay), "vehicle.antenna_x": float(antenna_x), "vehicle.antenna_y": float(antenna_y),
     }

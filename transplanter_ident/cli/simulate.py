@@ -10,7 +10,7 @@ The scenario (``--scenario``, see :mod:`transplanter_ident.sim.scenarios`) is si
 * ``/sim/cornering_stiffness`` Vector3Stamped (x = Cf, y = Cr) and ``/sim/body_velocity``
   TwistStamped at the CG (linear.x vx, linear.y vy, angular.z r): the ground truth.
 
-``--driver ublox|nmea|septentrio|odometry|swiftnav`` writes a real GNSS driver's shape (types,
+``--driver ublox|nmea|nmea-single|septentrio|odometry|swiftnav`` writes a real GNSS driver's shape (types,
 topics, stamping, conventions, invalid markers; :mod:`transplanter_ident.sim.drivers`); single
 flags override it. ``--params-out P.yaml`` writes the estimator parameters that read the bag.
 
@@ -92,7 +92,8 @@ def build_parser() -> argparse.ArgumentParser:
                      "(default twist)")
     enc.add_argument("--heading-type", choices=HEADING_TYPES,
                      help="QuaternionStamped, sensor_msgs/Imu, PoseWithCovarianceStamped or nav_msgs/Odometry (on the "
-                     "velocity topic, one message carries both) (default quaternion)")
+                     "velocity topic, one message carries both), or none: one antenna, --params-out then sets "
+                     "ekf.measurement course (default quaternion)")
     enc.add_argument("--steering-type", choices=("joint-state", "float64", "float32"),
                      help="sensor_msgs/JointState, std_msgs/Float64 or std_msgs/Float32 (default joint-state)")
     enc.add_argument("--velocity-frame", choices=("enu", "ned"),

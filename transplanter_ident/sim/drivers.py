@@ -15,7 +15,7 @@ from typing import Any
 
 #: message types ``simulate`` writes (bags.sim_bag.SimBagOptions): velocity and heading
 VELOCITY_TYPES = ("twist", "twist-cov", "odometry")
-HEADING_TYPES = ("quaternion", "imu", "pose-cov", "odometry")
+HEADING_TYPES = ("quaternion", "imu", "pose-cov", "odometry", "none")  # none: one antenna (ekf.measurement course)
 
 
 @dataclass(frozen=True)
@@ -40,6 +40,11 @@ DRIVERS: dict[str, DriverShape] = {
         "put straight into yaw, both stamped on arrival (80 ms after the receiver epoch, the heading 4 ms later)",
         {"velocity_topic": "/vel", "heading_topic": "/heading", "velocity_type": "twist", "heading_type": "quaternion",
          "heading_frame": "ned", "heading_lag": 0.004}, gnss_delay=0.08),
+    "nmea-single": DriverShape(
+        "nmea_navsat_driver with one antenna: vel TwistStamped (ENU) from the RMC/VTG speed and track, stamped on "
+        "arrival 80 ms after the receiver epoch; no heading (no HDT sentence), so the estimator reads the course "
+        "(ekf.measurement course)",
+        {"velocity_topic": "/vel", "velocity_type": "twist", "heading_type": "none"}, gnss_delay=0.08),
     "septentrio": DriverShape(
         "septentrio: the INS's nav_msgs/Odometry (twist in the body frame) and the dual-antenna heading in a "
         "PoseWithCovarianceStamped (ENU yaw of the baseline, mounted across, aux antenna on the left); NaN "
