@@ -13,7 +13,7 @@ from transplanter_ident.config.paper import PAPER_NOISE, PAPER_OPTIONS
 from transplanter_ident.config.parameters import EstimatorConfig, VehicleParams
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
-from transplanter_ident.epochs.settings import antenna_slip_per_tan, steering_sensor
+from transplanter_ident.epochs.settings import course_geometry, steering_sensor
 from transplanter_ident.sim.simulator import SensorNoise, SimConfig, SimResult, simulate
 
 Sample = tuple[str, float, tuple[float, ...]]
@@ -46,8 +46,7 @@ def sim_samples(result: SimResult, *, gnss_first: bool = False) -> list[Sample]:
 def assembler_settings(vehicle: VehicleParams, **overrides: object) -> AssemblerSettings:
     """AssemblerSettings with the vehicle's lever arm, heading offset, steering limit and steering sensor (scale, wheel)."""
     values = {"antenna_x": vehicle.antenna_x, "antenna_y": vehicle.antenna_y, "max_steering": vehicle.max_steering,
-              "heading_offset": vehicle.heading_offset, "antenna_slip_per_tan": antenna_slip_per_tan(vehicle),
-              **steering_sensor(vehicle)}
+              "heading_offset": vehicle.heading_offset, **course_geometry(vehicle), **steering_sensor(vehicle)}
     values.update(overrides)
     return AssemblerSettings(**values)
 

@@ -24,7 +24,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from drives import Run, judged_figures, run_course, sine_drive
+from drives import Run, judged_figures, run_course, sine_drive, sine_steering
 from helpers import QUICK_TUNE, assembler_settings, course_epochs, run_command
 from independent_sim import independent_drive
 
@@ -213,13 +213,13 @@ def signed_speeds(samples: list, behind_rear_axle: float = 0.0) -> tuple[np.ndar
 
 
 def test_a_log_that_starts_reversing_is_told_by_the_steering() -> None:
-    """Reversing with the wheels 15 deg left, the course turns right (0.24 rad/s): reversing from 3 s on.
+    """Reversing with the wheels 15 deg left, the course turns right (0.24 rad/s): reversing from 3.5 s on.
 
-    1.5 s of that turning is AGAINST_TURN; then forwards again through the stop.
+    DECISIVE_TURN (30 deg) is promised after the 1 s ramp and about 2.2 s; then forwards again through the stop.
     """
     t, speed = signed_speeds(kinematic_samples([(10.0, -1.0, math.radians(15.0)), (3.0, 0.0, 0.0),
                                                 (10.0, 1.5, math.radians(10.0))]))
-    assert np.all(speed[(t > 3.0) & (t < 10.0)] < -0.9)
+    assert np.all(speed[(t > 3.5) & (t < 10.0)] < -0.9)
     assert np.all(speed[t > 15.0] > 1.4)
 
 
@@ -240,17 +240,31 @@ def test_a_pivot_at_a_creep_is_no_reversal_once_the_vehicle_steers() -> None:
 def test_steering_hard_never_fakes_a_reversal() -> None:
     """Steering from 30 deg left to 30 deg right and back in 1 s, every 4 s: no reversal faked, either way.
 
-    At 0.6 m/s, forwards and (from a reversing start) backwards. An antenna d behind the rear axle swings out against the steering as the wheels
-    turn, by d (tan 30 deg - tan 3 deg) / L: 0.32 rad net at 1 m, within AGAINST_TURN (0.35) when the assembler
-    is not told; 1.5 m behind, it is told (vehicle.antenna_x) and takes the swing off. Untold, 1.5 m behind fakes
-    reversals: the lever arm must be set.
+    At 0.6 m/s, forwards and (from a reversing start) backwards. An antenna d behind the rear axle swings out
+    against the steering as the wheels turn, by d (tan 30 deg - tan 3 deg) / L: 1.5 m behind is harmless when the
+    assembler is not told; 3 m behind is harmless when it is told (vehicle.antenna_x) and takes the swing off,
+    and fakes reversals when it is not: the lever arm must be set.
     """
     legs = [(4.0, 0.6, math.radians(30.0) * (-1) ** k) for k in range(20)]
     backwards = [(4.0, -0.6, math.radians(20.0)), *[(duration, -speed, angle) for duration, speed, angle in legs]]
-    for behind, told in ((1.5, 1.5), (1.0, 0.0)):
+    for behind, told in ((3.0, 3.0), (1.5, 0.0)):
         t, speed = signed_speeds(kinematic_samples(legs, behind_rear_axle=behind), told)
         assert np.all(speed[t > 2.0] > 0.3), (behind, told)
         t, speed = signed_speeds(kinematic_samples(backwards, behind_rear_axle=behind), told)
-        assert np.all(speed[t > 4.0] < -0.3), (behind, told)
-    t, speed = signed_speeds(kinematic_samples(legs, behind_rear_axle=1.5), 0.0)
+        assert np.all(speed[t > 4.5] < -0.3), (behind, told)
+    t, speed = signed_speeds(kinematic_samples(legs, behind_rear_axle=3.0), 0.0)
     assert np.any(speed < 0.0)
+
+
+def test_noisy_creeping_never_fakes_a_reversal() -> None:
+    """0.4 m/s, three times the default GNSS noise (the course's own noise ~0.15 rad), +-25 deg and +-5 deg sines.
+
+    Seeds 0-2, 60 s each: no epoch taken as reversing (session 30: 21 % of them were, with a rule on the turn
+    alone, before the kinematic turn the steering promises had to reach DECISIVE_TURN first).
+    """
+    for seed in range(3):
+        for amplitude, period in ((25.0, 6.0), (5.0, 3.0)):
+            config = sine_drive(seed, speed=0.4, duration=60.0, steering=sine_steering(math.radians(amplitude), period))
+            noise = replace(config.noise, velocity=3.0 * config.noise.velocity, heading=3.0 * config.noise.heading)
+            epochs = course_epochs(simulate(replace(config, noise=noise)))
+            assert np.all(np.asarray(epochs.speed) > 0.0), (seed, amplitude)

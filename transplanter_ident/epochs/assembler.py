@@ -108,7 +108,7 @@ class EpochAssembler:
         self.uncovered_epochs = 0  # epochs formed before the steering covered their interval
         self._previous: _Anchor | None = None
         self._beyond_limits = 0  # consecutive epochs dropped for a physical limit
-        self._course = CourseTracker(settings.antenna_slip_per_tan)  # one antenna: forwards or reversing
+        self._course = CourseTracker(settings.antenna_slip_per_tan, settings.wheelbase)  # one antenna: which way
 
     @property
     def pairing(self) -> PairingStats:
@@ -223,7 +223,7 @@ class EpochAssembler:
         if frame != "enu":
             return self._reject("velocity", stamp, "a velocity in body axes has no course: ekf.measurement course "
                                 "needs a velocity in ENU or NED", checks.OTHER)
-        heading = self._course.heading(east, north, self._steering[-1][1] if self._steering else 0.0)
+        heading = self._course.heading(stamp, east, north, self._steering[-1][1] if self._steering else 0.0)
         vx_ant, vy_ant = body_velocity(east, north, heading)  # vy 0 by construction
         self._pending.append((stamp - self.settings.gnss_delay, vx_ant, vy_ant, heading,
                               lateral_variance(variance_east, variance_north, heading), 0.0))

@@ -34,12 +34,10 @@ def steering_sensor(vehicle: VehicleParams) -> dict[str, float]:
     return {"steering_scale": vehicle.steering_scale, "steering_play": vehicle.steering_play, "ackermann": ratio}
 
 
-def antenna_slip_per_tan(vehicle: VehicleParams) -> float:
-    """The antenna's kinematic sideslip per tan(wheel angle), (lr + antenna_x) / L.
-
-    One antenna's course less it turns as the vehicle does (:mod:`.course`).
-    """
-    return (vehicle.lr + vehicle.antenna_x) / (vehicle.lf + vehicle.lr)
+def course_geometry(vehicle: VehicleParams) -> dict[str, float]:
+    """The assembler's ``antenna_slip_per_tan``, (lr + antenna_x) / L, and ``wheelbase``, L (:mod:`.course`)."""
+    wheelbase = vehicle.lf + vehicle.lr
+    return {"antenna_slip_per_tan": (vehicle.lr + vehicle.antenna_x) / wheelbase, "wheelbase": wheelbase}
 
 
 @dataclass(frozen=True)
@@ -68,6 +66,7 @@ class AssemblerSettings:
     ackermann: float = 0.0  # steering_line.single_track_angle's ratio (0: the sensor gives the single-track angle)
     course: bool = False  # a single antenna (ekf.measurement course): each velocity's direction is its epoch's heading
     antenna_slip_per_tan: float = 0.0  # the antenna's kinematic sideslip per tan(wheel angle), (lr + antenna_x) / L
+    wheelbase: float = 1.1  # m, lf + lr: the kinematic yaw rate vx tan(delta) / L
 
     @classmethod
     def from_params(cls, params: EstimatorParams) -> AssemblerSettings:
@@ -89,8 +88,7 @@ class AssemblerSettings:
                    max_stamp_jump=params.gnss.max_stamp_jump, max_speed=vehicle.max_speed,
                    max_lateral_speed=vehicle.max_lateral_speed, max_yaw_rate=vehicle.max_yaw_rate,
                    max_steering_rate=vehicle.max_steering_rate, course=params.config.options.course,
-                   antenna_slip_per_tan=antenna_slip_per_tan(vehicle),
-                   **steering_sensor(vehicle))
+                   **course_geometry(vehicle), **steering_sensor(vehicle))
 
     def __post_init__(self) -> None:
         for name in ("velocity_frame", "heading_frame"):
