@@ -25,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 
-from drives import LATE_DROP, run_course, sine_drive  # noqa: E402
+from drives import LATE_DROP, run_course, sine_drive, sine_steering  # noqa: E402
 from independent_sim import independent_drive  # noqa: E402
 
 from transplanter_ident.config.parameters import (  # noqa: E402
@@ -50,6 +50,11 @@ ROWS: dict[str, tuple[str, dict[str, object], VehicleParams]] = {
     "paper's step: 20 deg held at 1 m/s, 90 s": ("package", {"speed": 1.0, "duration": 90.0, "steering":
                                                   step_steering(math.radians(20.0), start=2.0, ramp=0.5)},
                                                  VehicleParams()),
+    "GNSS 10 Hz": ("package", {"gnss_rate": 10.0}, VehicleParams()),
+    "tanh tire mu 0.3, +-25 deg": ("package", {"tire": "saturating", "friction": 0.3,
+                                               "steering": sine_steering(math.radians(25.0), 6.0)}, VehicleParams()),
+    "tanh tire mu 0.2 (below ekf.min_friction)": ("package", {"tire": "saturating", "friction": 0.2},
+                                                  VehicleParams()),
     "GNSS 5 ms late, unset": ("package", {"gnss_delay": 0.005}, VehicleParams()),
     "GNSS 10 ms late, unset": ("package", {"gnss_delay": 0.010}, VehicleParams()),
     "independent mu 0.8, antenna (0.8, 0.5) m": ("independent", {"friction": 0.8}, ARM),

@@ -40,7 +40,7 @@ from transplanter_ident.evaluation.health_report import HealthReport
 
 #: messages each input holds while the node is busy: 20 s of 50 Hz steering, so a stall of the node's process
 #: (a busy vehicle computer) delays epochs instead of dropping samples (qos_profile_sensor_data holds 5). A frozen
-#: process's transport holds fewer: Fast DDS's shared-memory port takes 512 messages of all inputs together.
+#: (stopped) process's transport holds less: Fast DDS's shared memory about a second's worth (README).
 INPUT_QUEUE_DEPTH = 1000
 #: the inputs' QoS: best effort and volatile accept every publisher's QoS (as qos_profile_sensor_data), deeper
 INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=INPUT_QUEUE_DEPTH,
