@@ -61,7 +61,7 @@ def test_second_load_skips_decoding_and_gives_identical_epochs(sim_bag, tmp_path
         np.testing.assert_array_equal(getattr(second.truth, name), getattr(direct.truth, name))
 
 
-def test_key_covers_every_non_ekf_parameter_and_ignores_ekf(sim_bag) -> None:  # noqa: ANN001
+def test_key_covers_every_non_ekf_parameter_and_the_measurement_and_ignores_other_ekf(sim_bag) -> None:  # noqa: ANN001
     base = EstimatorParams()
     key = cache.cache_key(sim_bag, base)
     ekf_only = flat_to_params({"ekf.process_noise": [1e-3, 1e-3, 1e-5, 1e-5], "ekf.min_speed": 0.5})
@@ -74,9 +74,25 @@ def test_key_covers_every_non_ekf_parameter_and_ignores_ekf(sim_bag) -> None:  #
         flat_to_params({"steering.joint_name": "wheel"}),
         flat_to_params({"topics.velocity_type": "geometry_msgs/msg/TwistWithCovarianceStamped"}),
         flat_to_params({"gnss.delay": 0.04}),
+        flat_to_params({"ekf.measurement": "course"}),  # a single antenna: each velocity its own epoch
     ]
     keys = {cache.cache_key(sim_bag, p) for p in changed}
     assert key not in keys and len(keys) == len(changed)
+
+
+def test_a_course_is_not_served_the_epochs_of_a_heading(sim_bag, tmp_path, reader) -> None:  # noqa: ANN001
+    """The same bag tuned with a heading, then with one antenna (ekf.measurement course): decoded again.
+
+    Before session 30 the key left every ekf.* out, and the course run got the heading's epochs (a measured vy).
+    """
+    heading = cache.load_bag_epochs(str(sim_bag), EstimatorParams(), tmp_path)
+    course_params = flat_to_params({"ekf.measurement": "course"})
+    course = cache.load_bag_epochs(str(sim_bag), course_params, tmp_path)
+    assert (heading.source, course.source, reader.calls) == ("bag", "bag", 2)
+    assert np.all(np.isfinite(heading.epochs.lateral_velocity))
+    assert np.all(np.isnan(course.epochs.lateral_velocity))  # one antenna measures no vy
+    direct = read_bag(sim_bag, course_params, truth=True)
+    np.testing.assert_array_equal(kernel_input(course.epochs), kernel_input(direct.epochs))
 
 
 def test_a_changed_bag_is_decoded_again(sim_bag, tmp_path, reader) -> None:  # noqa: ANN001

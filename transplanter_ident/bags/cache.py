@@ -9,7 +9,8 @@ part of a short run. :func:`load_bag_epochs` keeps what :func:`.reader.read_bag`
   every file in it (``metadata.yaml``, the ``.mcap`` files), so a re-recorded bag misses;
 * every parameter that is not ``ekf.*`` (frames, antenna, topics and their types, the
   steering joint, ``max_steering``, and any key added later: the filter's own ``ekf.*``
-  settings do not shape the epochs, everything else might);
+  settings do not shape the epochs, everything else might), and ``ekf.measurement``, which does
+  (:data:`EPOCH_SHAPING_EKF_KEYS`: a single antenna's course makes each velocity its own epoch);
 * a digest of the code that decodes and assembles epochs (``epochs/`` and ``bags/``) and a
   format version, so a change there re-decodes.
 
@@ -67,9 +68,14 @@ def bag_identity(bag: str | Path) -> dict[str, Any]:
     return {"path": str(path), "files": stats}
 
 
+#: the filter's parameters that shape its epochs too (epochs.settings.AssemblerSettings.from_params reads them)
+EPOCH_SHAPING_EKF_KEYS = ("ekf.measurement",)
+
+
 def cache_key(bag: str | Path, params: EstimatorParams) -> str:
-    """The JSON text the cache file is keyed by (bag identity, non-ekf parameters, code, format)."""
-    shaping = {k: v for k, v in sorted(params_to_flat(params).items()) if not k.startswith("ekf.")}
+    """The JSON text the cache file is keyed by (bag identity, the parameters that shape epochs, code, format)."""
+    shaping = {k: v for k, v in sorted(params_to_flat(params).items())
+               if not k.startswith("ekf.") or k in EPOCH_SHAPING_EKF_KEYS}
     material = {"format": FORMAT, "code": _code_digest(), "bag": bag_identity(bag), "params": shaping}
     return json.dumps(material, sort_keys=True, default=repr)
 
