@@ -38,6 +38,7 @@ from transplanter_ident.config.parameters import (
 from transplanter_ident.config.params_file import load_params
 from transplanter_ident.ekf.joint_ekf import run_sequence
 from transplanter_ident.epochs.assembler import EpochAssembler, assemble
+from transplanter_ident.epochs.course import CourseTracker
 from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.evaluation.validity import decide_sequence, monitor_for, sample_of
 from transplanter_ident.sim.simulator import SimResult, simulate
@@ -268,3 +269,22 @@ def test_noisy_creeping_never_fakes_a_reversal() -> None:
             noise = replace(config.noise, velocity=3.0 * config.noise.velocity, heading=3.0 * config.noise.heading)
             epochs = course_epochs(simulate(replace(config, noise=noise)))
             assert np.all(np.asarray(epochs.speed) > 0.0), (seed, amplitude)
+
+
+def test_a_gnss_time_step_restarts_the_run_of_steering() -> None:
+    """GNSS stamps stepping back 100 s within a run of steering: the run restarts, reversing is still told.
+
+    Without the restart the run promises a turn over -100 s and never decides; with it, a log that starts
+    reversing is told within 4 s of the step (CourseTracker alone).
+    """
+    samples = kinematic_samples([(10.0, -1.0, math.radians(15.0))])
+    tracker = CourseTracker(0.0, 1.1)
+    steering, reversing_after = 0.0, []
+    for kind, t, values in samples:
+        if kind == "steering":
+            steering = values[0]
+            continue
+        stamp = t if t < 2.0 else t - 100.0
+        tracker.heading(stamp, *values, steering)
+        reversing_after.append((t, tracker.reversing))
+    assert all(reversing for t, reversing in reversing_after if t > 6.0)

@@ -34,6 +34,8 @@ STEERED = math.radians(3.0)
 #: course decides: the course's own noise over a run, sqrt(2) sigma_v / |v|, is 0.2 rad at 0.4 m/s with a
 #: 0.06 m/s velocity noise
 DECISIVE_TURN = math.radians(30.0)
+#: s: velocities further apart do not continue one run of steering
+MAX_RUN_GAP = 1.0
 
 
 @dataclass
@@ -63,8 +65,10 @@ class CourseTracker:
                 turn = math.remainder(direction - self.reference[1], 2.0 * math.pi)
                 if abs(turn) > 0.5 * math.pi:
                     self._toggle()
-                else:
+                elif 0.0 < t - self.reference[0] <= MAX_RUN_GAP:
                     self._steered_turn(turn, steering, speed * (t - self.reference[0]))
+                else:  # a gap, or a GNSS time base that stepped: the run starts again
+                    self.side = 0
             self.reference = (t, direction)
         return course + math.pi if self.reversing else course
 
