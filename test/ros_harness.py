@@ -209,11 +209,6 @@ class RosSession:
     def alive(self) -> bool:
         return self.process is not None and self.process.poll() is None
 
-    def signal_estimator(self, name: str) -> None:
-        """Send the node's process a signal by name (SIGSTOP stalls it, SIGCONT resumes it)."""
-        if self.process is not None and self.process.poll() is None:
-            self.process.send_signal(getattr(signal, name))
-
     def stop_estimator(self, timeout: float = 15.0, stop_signal: str = "SIGINT") -> int | None:
         """SIGINT (or ``stop_signal``), then wait; SIGKILL if it hangs. Returns the exit code."""
         if self.process is None:
@@ -341,8 +336,7 @@ def scenario(spec: dict[str, Any]) -> dict[str, Any]:
       publish_types: [[topic, type], ...] publishers to create up front (matched before the steps)
       steps: a list of one-key dicts, in order:
         {"publish": [{"topic", "type", "fields", "at"?}, ...], "pace": s} -- each message, then spin
-            ``pace`` seconds; with "at" (s from the step's start) messages go out on that schedule; an item
-            {"node_signal": "SIGSTOP"} signals the node's process instead (SIGCONT resumes it)
+            ``pace`` seconds; with "at" (s from the step's start) messages go out on that schedule
         {"spin": s}
         {"wait_for": [key, count, timeout]}      spin until ``count`` messages are recorded
         {"mark": name}                           monotonic time and record counts
@@ -380,9 +374,6 @@ def _run_step(session: RosSession, step: dict[str, Any], marks: dict[str, Any], 
         pace = float(step.get("pace", 0.002))
         start = time.monotonic()
         for item in step["publish"]:
-            if "node_signal" in item:  # {"node_signal": "SIGSTOP"}: stall the node's process (SIGCONT resumes it)
-                session.signal_estimator(item["node_signal"])
-                continue
             if "at" in item:
                 left = start + float(item["at"]) - time.monotonic()
                 if left > 0.0:

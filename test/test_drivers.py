@@ -103,8 +103,8 @@ def test_a_single_antenna_driver_is_read_as_its_course(tmp_path: Path, driver: s
 
     Over seeds 1-6 (120 s sine at 2 m/s; measured in brackets, session 30): >= 95 % of the GNSS epochs estimated
     (99.8 %), none rejected; from 30 s on, +-2 sigma covers Cf and Cr in >= 95 % of the epochs, pooled (100 %),
-    and in all but <= 5 % of the valid ones (all; valid in 73 %, seed 1 in 18 %); median |final error| <= 3 %
-    (2.2 %).
+    and in all but <= 5 % of the valid ones (all); valid in >= 40 % (73 %, seed 1 in 18 %); median |final
+    error| <= 3 % (2.2 %).
     """
     covered, valid_out, valid, final = [], [], [], []
     for seed in SEEDS:
@@ -130,6 +130,7 @@ def test_a_single_antenna_driver_is_read_as_its_course(tmp_path: Path, driver: s
     print(f"\n{driver}: covered {100 * covered_share:.1f} %, valid {100 * valid_share:.1f} %, valid and outside "
           f"{100 * outside_share:.1f} %, median |final error| {100 * float(np.median(final)):.2f} %")
     assert covered_share >= 0.95 and outside_share <= 0.05 and float(np.median(final)) <= 0.03
+    assert valid_share >= 0.4  # a course that is never valid would pass the line above trivially
 
 
 def test_one_antenna_needs_a_ground_velocity(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -33,7 +33,6 @@ from transplanter_ident.config.schema import PARAMS, SCHEMA, default_values
 from transplanter_ident.epochs.settings import INPUT_ROLES
 from transplanter_ident.evaluation.health import HealthThresholds
 
-ROLES = INPUT_ROLES
 ODOMETRY = "nav_msgs/msg/Odometry"
 
 
@@ -119,7 +118,7 @@ def validate(flat: Mapping[str, Any]) -> NodeSettings:
     """Check a set of parameter values (missing keys: defaults); raises ParamsError naming the key and the reason."""
     params = flat_to_params(flat)
     values = {**default_values(), **params_to_flat(params)}
-    message_types = {role: str(PARAMS[f"topics.{role}_type"].match(values[f"topics.{role}_type"])) for role in ROLES}
+    message_types = {role: str(PARAMS[f"topics.{role}_type"].match(values[f"topics.{role}_type"])) for role in INPUT_ROLES}
     if params.topics.velocity == params.topics.heading and not (
             message_types["velocity"] == message_types["heading"] == ODOMETRY):
         raise ParamsError(f"topics.velocity and topics.heading are both {params.topics.velocity}: only one "
