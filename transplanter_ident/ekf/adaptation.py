@@ -282,21 +282,14 @@ def noise_scale(memo, settings, slot, span_slot):
     return min(max(memo[slot], 1.0), settings[S_MAX_NOISE_SCALE])
 
 
-#: weighted s of data the configured R counts as when the measure of R starts (within ekf.noise_memory): a few
-#: large innovations right after the start (an offset still settling) raise the factor by little, a noisier
-#: receiver's lasting ones by all they show
-NOISE_PRIOR_SPAN = 3.0
-
-
 @inline_kernel
 def _learn_ratio(memo, settings, slot, span_slot, dt, innovation, prior, noise, r):
     """One channel: the sample (e^2 - prior) / r, weighted by (noise / (prior + noise))^2 (var e^2 = 2 S^2)."""
-    if not memo[span_slot] > 0.0:  # the first sample: the configured R as NOISE_PRIOR_SPAN s of data
-        memo[slot] = 1.0
-        memo[span_slot] = min(NOISE_PRIOR_SPAN, settings[S_NOISE_MEMORY])
     s = prior + noise
     weight = (noise / s) ** 2 * dt
     span = min(memo[span_slot] + weight, settings[S_NOISE_MEMORY])
+    if not span > 0.0:
+        return
     memo[slot] += weight / span * ((innovation * innovation - prior) / r - memo[slot])
     memo[span_slot] = span
 
@@ -310,9 +303,8 @@ def learn_noise_scales(memo, settings, dt, e0, e1, prior0, prior1, noise0, noise
     learned factor); r0, r1: this epoch's R as configured (or reported). Each sample weighs
     (noise / S)^2 (var e^2 = 2 S^2): an epoch whose prior is far less certain than its noise says
     little about R. A weighted mean over the first ``ekf.noise_memory`` seconds, then exponential with
-    that time constant, starting from the configured R as NOISE_PRIOR_SPAN s of data. Only epochs that
-    passed the gate count, once the model is near (kernels.py).
-    ``velocity`` False: the second measurement's alone (a course measures no vy).
+    that time constant. Only epochs that passed the gate count. ``velocity`` False: the second
+    measurement's alone (kernels.py: vy's waits while a misaligned heading may still hide in it).
     """
     if settings[S_NOISE_ADAPTATION] < 0.5:
         return

@@ -290,11 +290,10 @@ def make_kernels(heading, lagged=False):
         nonlinear = beyond and known
         if lagged and known:  # the slip lags from now on (see the module docstring)
             memo[M_LAG_ACTIVE] = 1.0
-        # the model is near once both stiffnesses are known (or DELAY_SETTLE s of data are in); before, its errors are
-        # neither a misaligned heading nor noise: an estimated h is held (Schmidt) and no R is learnt (a start from the
-        # prior was once read as a heading 100x noisier than R, and the estimate invalid for minutes)
-        settled = known or memo[M_DELAY_SETTLED] >= DELAY_SETTLE
-        heading_held = settings[S_P0_HEADING_OFFSET] > 0.0 and not settled
+        # an estimated h is held (Schmidt) until both stiffnesses are known (or DELAY_SETTLE s of data are in), and
+        # vy's R is not learnt meanwhile: the vy errors of a model still far off its priors are neither a misaligned
+        # heading nor noise, and a misaligned heading is not noise
+        heading_held = settings[S_P0_HEADING_OFFSET] > 0.0 and not known and memo[M_DELAY_SETTLED] < DELAY_SETTLE
 
         # 3.
         psi_model_before = model[X_PSI]
@@ -386,9 +385,9 @@ def make_kernels(heading, lagged=False):
         if relaxing:
             lag0, _ = propagate_relaxation_bias(memo, n, nd, nb, h1, updated, vx, eps_f, eps_r, ws)
         keep_speed_cross(memo, speed_variance, updated, ws)
-        if updated and (known if course else settled):  # a course's errors from a stiffness far off are not noise
+        if updated and (known or not course):  # a course's errors from a stiffness far off are not noise either
             learn_noise(memo, settings, heading_terms, t, dt, speed, e0, e1, hph00, hph01, hph11, r_noise[Z_VY],
-                        second, not course)
+                        second, not (heading_held or course), not heading_held)
         if updated:
             score_model_errors(memo, settings, dt, g0, g1, tire0, tire1, e0, e1, s00, s01, s11, det)
         if updated and measuring:  # the relaxation, gain, heading and play measures (measure_outputs.py)

@@ -116,19 +116,20 @@ def learn_noise_correlation(memo, settings, t, dt, e0, e1, s00, s11):
 
 @inline_kernel
 def learn_noise(memo, settings, heading, t, dt, speed, e0, e1, hph00, hph01, hph11, configured0, configured1,
-                velocity):
+                velocity, correlation):
     """After an accepted epoch: R's variance as the innovations show it (adaptation.learn_noise_scales) and rho.
 
     R's variance is matched against S with R unwidened: H P^- H^T (hph*) plus the configured (or reported)
     R (configured0, configured1) times the learned variance factors. With the widened R the heading's share
     of the velocity's S (vx^2 R_psi) would be overstated and the velocity's measured R would fall (GNSS 3x
     noisier than R: R_v x1.9 where it is x9, and false change alarms). rho normalises by that S too.
-    ``velocity``: vy's R is learnt too (a course measures no vy). The kernel calls it once the model is near
-    (kernels.py: before, its errors are neither noise nor a misaligned heading).
+    ``velocity``: vy's R is learnt too; ``correlation``: rho is (both False while a misaligned heading may hide in
+    vy; a course measures no vy, only rho).
     """
     r0 = configured0 * noise_scale(memo, settings, M_NOISE_VY, M_NOISE_SPAN_VY)
     r1 = configured1 * noise_scale(memo, settings, M_NOISE_SECOND, M_NOISE_SPAN_SECOND)
     white00, _, white11 = innovation_covariance(heading, hph00, hph01, hph11, r0, r1, speed)
     learn_noise_scales(memo, settings, dt, e0, e1, white00 - r0, white11 - r1, r0, r1, configured0, configured1,
                        velocity)
-    learn_noise_correlation(memo, settings, t, dt, e0, e1, white00, white11)
+    if correlation:
+        learn_noise_correlation(memo, settings, t, dt, e0, e1, white00, white11)
