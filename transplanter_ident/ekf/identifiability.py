@@ -67,6 +67,7 @@ RELAXED_MARGIN = 4.0
 RELAXED_PERIODS = 10
 #: statuses whose epoch the filter did not take: they add no information and publish nothing
 SKIPPED = frozenset({StepStatus.REJECTED_INVALID, StepStatus.REJECTED_STAMP, StepStatus.DIVERGED})
+_SKIPPED_CODES = np.array(sorted(int(status) for status in SKIPPED), dtype=np.float64)  # as O_STATUS holds them
 
 
 def window_information(config: EstimatorConfig, rows: np.ndarray, theta: np.ndarray, segment: float = SEGMENT,
@@ -202,7 +203,7 @@ def _turning(rows: np.ndarray, outputs: np.ndarray, min_steering: float) -> np.n
 
 def _taken(outputs: np.ndarray) -> np.ndarray:
     """Per output row: whether the filter took its epoch (and it has a stiffness)."""
-    skipped = np.isin(outputs[:, O_STATUS].astype(int), [int(status) for status in SKIPPED])
+    skipped = (outputs[:, O_STATUS, None] == _SKIPPED_CODES).any(axis=1)  # np.isin costs the node ~40 us an epoch
     return ~skipped & (outputs[:, O_CF] > 0.0) & (outputs[:, O_CR] > 0.0)
 
 

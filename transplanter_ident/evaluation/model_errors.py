@@ -89,15 +89,16 @@ class ModelError:
     def reason(self, measure: Measure, relative: tuple[float, float], settings: ValiditySettings) -> str | None:
         """:meth:`fails` for one epoch: None when it passes, else the reason (with the shift it implies)."""
         value, std, *sensitivity = measure
+        if not std > 0.0:  # not measured yet: passes (measure_shows, measure_shifts)
+            return None
         value = max(value, 0.0) if self.lagging else value
         sigmas, max_shift = self.thresholds(settings)
-        shown = self.describe(measure[0], std)
         if measure_shows(value, std, sigmas):
-            return f"the innovations show {shown}: {self.advice}"
+            return f"the innovations show {self.describe(measure[0], std)}: {self.advice}"
         if any(measure_shifts(value, std, s, rel, max_shift) for s, rel in zip(sensitivity, relative, strict=True)):
             shift = max(float(measure_shift(value, std, s)) for s in sensitivity)
-            return (f"the innovations show {shown}, which moves the stiffness by {100 * shift:.0f} % or more, beyond "
-                    f"its band: {self.advice}")
+            return (f"the innovations show {self.describe(measure[0], std)}, which moves the stiffness by "
+                    f"{100 * shift:.0f} % or more, beyond its band: {self.advice}")
         return None
 
 
