@@ -52,6 +52,7 @@ from transplanter_ident.ekf.adaptation import (
     propagate_inertia_bias,
     propagate_scale_bias,
     propagate_tire_bias,
+    restart_noise_when_near,
     saturation_share,
     score_model_errors,
 )
@@ -385,6 +386,8 @@ def make_kernels(heading, lagged=False):
         if relaxing:
             lag0, _ = propagate_relaxation_bias(memo, n, nd, nb, h1, updated, vx, eps_f, eps_r, ws)
         keep_speed_cross(memo, speed_variance, updated, ws)
+        if updated:
+            restart_noise_when_near(memo, known)
         if updated and (known or not course):  # a course's errors from a stiffness far off are not noise either
             learn_noise(memo, settings, heading_terms, t, dt, speed, e0, e1, hph00, hph01, hph11, r_noise[Z_VY],
                         second, not (heading_held or course), not heading_held)

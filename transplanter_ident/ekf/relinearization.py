@@ -40,7 +40,7 @@ from transplanter_ident.ekf.layout import (
     DIVERGENCE_PENALTY,
     M_CORRELATION_LAG,
     M_CORRELATION_SPAN,
-    M_NOISE_SPAN_SECOND,
+    M_NOISE_SETTLED,
     M_NOISE_VY,
     N_MEMO,
     N_MODEL,
@@ -64,8 +64,9 @@ CHECK_PERIOD_US = round(CHECK_PERIOD * 1e6)
 MOVE_SIGMAS = 3.0
 #: a new pass's prior of θf, θr: centred where the pass in force is, at most this many of its std wide
 PRIOR_SIGMAS = 5.0
-#: the memo slots of the noise the innovations show (adaptation.learn_noise_scales)
-SENSOR_NOISE = slice(M_NOISE_VY, M_NOISE_SPAN_SECOND + 1)
+#: the memo slots of the noise the innovations show (adaptation.learn_noise_scales), and whether it was restarted
+#: once the model was near (kernels.py)
+SENSOR_NOISE = slice(M_NOISE_VY, M_NOISE_SETTLED + 1)
 #: ... and of their correlation in time (noise_correlation.learn_noise_correlation), not the last pair
 NOISE_CORRELATION = slice(M_CORRELATION_LAG, M_CORRELATION_SPAN + 1)
 #: epochs kept for a new pass at most (a start-up spent standing still ends the window)
