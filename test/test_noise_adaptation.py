@@ -95,7 +95,7 @@ def test_the_kernel_learns_as_a_plain_loop_over_its_outputs(widened: bool) -> No
     previous epoch's), sample (e_i^2 - prior) / R_i of weight (R_i f_i / S_ii)^2 dt, a weighted mean over the
     first ekf.noise_memory s, then exponential; the factor is that mean clipped to [1, max_noise_scale]. vy's
     waits while the filter holds the heading misalignment h (helpers.heading_held: until the model is near);
-    then both start again from nothing (adaptation.restart_noise_when_near).
+    then both start again from nothing (noise_correlation.restart_noise_when_near).
     ``widened`` (ekf.noise_correlation): S is the one with R unwidened, rebuilt from the published S
     (test_noise_correlation.unwidened_s). One pass (``ekf.relinearization_window: 0``): a re-linearised
     pass goes on from what it learned over epochs whose outputs were published by the pass before it.
@@ -177,7 +177,7 @@ def test_the_start_from_the_prior_is_not_read_as_noise(rate: float) -> None:
 
     The filter starts far from the truth (C0 = 1000 N/rad); while it converges its errors are neither noise
     nor a misaligned heading, so the measure of R starts again once both stiffnesses are known (or 10 s of
-    data are in; adaptation.restart_noise_when_near). Without that, seed 3 read the start as a heading 100x
+    data are in; noise_correlation.restart_noise_when_near). Without that, seed 3 read the start as a heading 100x
     noisier than R within 3 s, kept a factor of 6.9 (10 Hz) and 3.3 (20 Hz) from 30 s on, and was valid in
     0 % and 61 % of those epochs (the other seeds <= 1.35). Measured since: <= 1.23 on seeds 0-11 (5 Hz:
     <= 1.32), seed 3 valid in 100 % (10 Hz) and 90 % (20 Hz).

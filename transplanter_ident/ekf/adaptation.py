@@ -19,8 +19,8 @@
   :func:`saturation_share` turns the latter into the correction of Cf, Cr and the bias the std keeps;
 * :func:`learn_noise_scales` / :func:`noise_scale`: R as the innovations show it (covariance
   matching, E[e e^T] = H P^- H^T + R), never below the configured R. Sensors noisier than R would
-  otherwise look like a stiffness change to the CUSUM at every epoch and narrow the band;
-  :func:`restart_noise_when_near` drops what the filter's own start showed of R.
+  otherwise look like a stiffness change to the CUSUM at every epoch and narrow the band
+  (noise_correlation.restart_noise_when_near drops what the filter's own start showed of R).
 """
 
 from __future__ import annotations
@@ -40,7 +40,6 @@ from transplanter_ident.ekf.layout import (
     M_HEADING_BIAS,
     M_INERTIA_BIAS,
     M_NOISE_SECOND,
-    M_NOISE_SETTLED,
     M_NOISE_SPAN_SECOND,
     M_NOISE_SPAN_VY,
     M_NOISE_VY,
@@ -305,7 +304,7 @@ def learn_noise_scales(memo, settings, dt, e0, e1, prior0, prior1, noise0, noise
     learned factor); r0, r1: this epoch's R as configured (or reported). Each sample weighs
     (noise / S)^2 (var e^2 = 2 S^2): an epoch whose prior is far less certain than its noise says
     little about R. A weighted mean over the first ``ekf.noise_memory`` seconds, then exponential with
-    that time constant; once the model is near it starts again (:func:`restart_noise_when_near`). Only
+    that time constant; once the model is near it starts again (noise_correlation.restart_noise_when_near). Only
     epochs that passed the gate count. ``velocity`` False: the second measurement's alone (kernels.py: vy's
     waits while a misaligned heading may still hide in it).
     """
@@ -319,22 +318,6 @@ def learn_noise_scales(memo, settings, dt, e0, e1, prior0, prior1, noise0, noise
 #: s of accepted data before the delay is scored: the filter's own start (offset and stiffness converging
 #: from their priors) is not the small, linear response the bias propagation describes
 DELAY_SETTLE = 10.0
-
-
-@inline_kernel
-def restart_noise_when_near(memo, known):
-    """After an update: once the model is near (both stiffnesses ``known``, or DELAY_SETTLE s of data), R anew.
-
-    What the innovations showed of R before damped the start (a larger R, a smaller step where the
-    linearisation is poor), but it was no sensor's noise: on one drive at 10 Hz the start read the heading's R
-    100x too small, and the factor still stood at 6.9 at 30 s, so the estimate was never valid. The measure
-    then starts again as at the start (nothing learnt: the configured R), once per run.
-    """
-    if memo[M_NOISE_SETTLED] > 0.5 or not (known or memo[M_DELAY_SETTLED] >= DELAY_SETTLE):
-        return
-    for slot in range(M_NOISE_VY, M_NOISE_SPAN_SECOND + 1):
-        memo[slot] = 0.0
-    memo[M_NOISE_SETTLED] = 1.0
 
 
 @inline_kernel

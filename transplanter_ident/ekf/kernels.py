@@ -52,7 +52,6 @@ from transplanter_ident.ekf.adaptation import (
     propagate_inertia_bias,
     propagate_scale_bias,
     propagate_tire_bias,
-    restart_noise_when_near,
     saturation_share,
     score_model_errors,
 )
@@ -141,7 +140,7 @@ from transplanter_ident.ekf.measurement_row import (
     vy_row_quadratic,
     vy_row_times_column,
 )
-from transplanter_ident.ekf.noise_correlation import effective_noise, learn_noise
+from transplanter_ident.ekf.noise_correlation import effective_noise, learn_noise, restart_noise_when_near
 from transplanter_ident.ekf.play_signature import propagate_play_bias
 from transplanter_ident.ekf.prediction import make_prediction
 from transplanter_ident.ekf.recovery import make_recovery

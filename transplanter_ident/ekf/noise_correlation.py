@@ -17,6 +17,7 @@ noise of variance R (1 + rho) / (1 - rho), so each measurement's R is widened by
 * :func:`correlation_factor`: (1 + rho) / (1 - rho), rho within [0, ``MAX_CORRELATION``], 1 until
   ``CORRELATION_SETTLE`` s of pairs were seen or with ``ekf.noise_correlation`` off;
 * :func:`learn_noise`: after an accepted epoch, both measures of R (with adaptation.learn_noise_scales);
+* :func:`restart_noise_when_near`: the measure of R's variance starts again once the model is near;
 * :func:`effective_noise`: R as the step takes it, the configured R times the factor the innovations'
   variance shows (adaptation.noise_scale) times this one.
 
@@ -30,14 +31,16 @@ measured R fell (GNSS 3x noisier than R, one drive: R_psi x80, R_v x1.9, 18 fals
 
 from __future__ import annotations
 
-from transplanter_ident.ekf.adaptation import learn_noise_scales, noise_scale
+from transplanter_ident.ekf.adaptation import DELAY_SETTLE, learn_noise_scales, noise_scale
 from transplanter_ident.ekf.layout import (
     M_CORRELATION_LAG,
     M_CORRELATION_LAST,
     M_CORRELATION_LAST_T,
     M_CORRELATION_POWER,
     M_CORRELATION_SPAN,
+    M_DELAY_SETTLED,
     M_NOISE_SECOND,
+    M_NOISE_SETTLED,
     M_NOISE_SPAN_SECOND,
     M_NOISE_SPAN_VY,
     M_NOISE_VY,
@@ -133,3 +136,19 @@ def learn_noise(memo, settings, heading, t, dt, speed, e0, e1, hph00, hph01, hph
                        velocity)
     if correlation:
         learn_noise_correlation(memo, settings, t, dt, e0, e1, white00, white11)
+
+
+@inline_kernel
+def restart_noise_when_near(memo, known):
+    """After an update: once the model is near (both stiffnesses ``known``, or DELAY_SETTLE s of data), R anew.
+
+    What the innovations showed of R before damped the start (a larger R, a smaller step where the
+    linearisation is poor), but it was no sensor's noise: on one drive at 10 Hz the start read the heading's R
+    100x too small, and the factor still stood at 6.9 at 30 s, so the estimate was never valid. The measure
+    then starts again as at the start (nothing learnt: the configured R), once per run.
+    """
+    if memo[M_NOISE_SETTLED] > 0.5 or not (known or memo[M_DELAY_SETTLED] >= DELAY_SETTLE):
+        return
+    for slot in range(M_NOISE_VY, M_NOISE_SPAN_SECOND + 1):
+        memo[slot] = 0.0
+    memo[M_NOISE_SETTLED] = 1.0
