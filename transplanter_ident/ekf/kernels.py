@@ -290,9 +290,8 @@ def make_kernels(heading, lagged=False):
         nonlinear = beyond and known
         if lagged and known:  # the slip lags from now on (see the module docstring)
             memo[M_LAG_ACTIVE] = 1.0
-        # an estimated h is held (Schmidt) until both stiffnesses are known (or DELAY_SETTLE s of data are in), and
-        # vy's R is not learnt meanwhile: the vy errors of a model still far off its priors are neither a misaligned
-        # heading nor noise, and a misaligned heading is not noise
+        # an estimated h is held (Schmidt), and vy's R not learnt, until both stiffnesses are known (or DELAY_SETTLE s
+        # of data): a model far off its priors makes vy errors that are neither h nor noise (and h is no noise)
         heading_held = settings[S_P0_HEADING_OFFSET] > 0.0 and not known and memo[M_DELAY_SETTLED] < DELAY_SETTLE
 
         # 3.
