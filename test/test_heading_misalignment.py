@@ -81,7 +81,7 @@ def test_with_the_state_off_the_filter_measures_a_misaligned_heading(degrees: fl
     Measured: 0 deg 0.00-0.01 +- 0.03; 0.5 deg 0.50 +- 0.05; -1 deg -1.00 +- 0.10-0.13; 2 deg 1.99-2.09 +- 0.3-0.4
     (the std grows with delta: the noise measure takes the steady vy for noise and widens S).
     The stiffness's sensitivity is small (|O_HEADING_SENS| <= 0.7 per radian: <= 1.2 % per degree). It follows
-    the R the noise measure learns, which in this set-up takes the misalignment for noise (heading x75-87):
+    the R the noise measure learns, which in this set-up takes the misalignment for noise (heading x1.5-88):
     0.25 at most before session 31 restarted that measure once the model is near, 0.64 since (2 deg, seed 4).
     """
     for seed in SEEDS:

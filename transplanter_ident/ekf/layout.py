@@ -111,7 +111,7 @@ M_BIAS = 6  # memo[M_BIAS + i]: the first-order bias of state i from the tire's 
 # variance to R, for vy and for the second measurement, and the weighted seconds of data in each
 M_NOISE_VY = M_BIAS + MAX_STATES  # each bias block holds MAX_STATES slots
 M_NOISE_SECOND, M_NOISE_SPAN_VY, M_NOISE_SPAN_SECOND = M_NOISE_VY + 1, M_NOISE_VY + 2, M_NOISE_VY + 3
-#: 1 once the model was near (kernels.py): what the innovations showed of R before was dropped then
+#: 1 once the model was near (noise_correlation.restart_noise_when_near): R's measure started again then
 M_NOISE_SETTLED = M_NOISE_SPAN_SECOND + 1
 M_DELAY_BIAS = M_NOISE_SETTLED + 1  # memo[M_DELAY_BIAS + i]: the bias of state i per second of unconfigured GNSS delay
 # the online measure of that delay (adaptation.score_signature): score, information, seconds of data seen (both measures)

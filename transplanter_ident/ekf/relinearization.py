@@ -65,7 +65,7 @@ MOVE_SIGMAS = 3.0
 #: a new pass's prior of θf, θr: centred where the pass in force is, at most this many of its std wide
 PRIOR_SIGMAS = 5.0
 #: the memo slots of the noise the innovations show (adaptation.learn_noise_scales), and whether it was restarted
-#: once the model was near (kernels.py)
+#: once the model was near (noise_correlation.restart_noise_when_near)
 SENSOR_NOISE = slice(M_NOISE_VY, M_NOISE_SETTLED + 1)
 #: ... and of their correlation in time (noise_correlation.learn_noise_correlation), not the last pair
 NOISE_CORRELATION = slice(M_CORRELATION_LAG, M_CORRELATION_SPAN + 1)
