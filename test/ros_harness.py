@@ -338,7 +338,9 @@ def scenario(spec: dict[str, Any]) -> dict[str, Any]:
         {"publish": [{"topic", "type", "fields", "at"?}, ...], "pace": s} -- each message, then spin
             ``pace`` seconds; with "at" (s from the step's start) messages go out on that schedule
         {"spin": s}
-        {"wait_for": [key, count, timeout]}      spin until ``count`` messages are recorded
+        {"wait_for": [key, count, timeout]}      spin until ``count`` messages are recorded; one that times
+            out is listed in results["timed_out"] (step index, key, count, recorded), and with the spec's
+            "stop_at_timeout" true the steps end there (a lost message would time every later wait out)
         {"mark": name}                           monotonic time and record counts
         {"set_parameters": {name: value}, "as": name, "node"?: "/estimator"}
         {"get_parameters": [names], "as": name, "node"?: "/estimator"}
@@ -357,8 +359,13 @@ def scenario(spec: dict[str, Any]) -> dict[str, Any]:
         session.start_estimator(spec.get("estimator_args", []), Path(spec["_tmp"]) / "estimator.log",
                                 options=spec.get("estimator_options", []))
         session.wait_matched(spec.get("match_timeout", 30.0))
-        for step in spec["steps"]:
-            _run_step(session, step, marks, results)
+        for index, step in enumerate(spec["steps"]):
+            met = _run_step(session, step, marks, results)
+            if not met:
+                key, count, _ = step["wait_for"]
+                results.setdefault("timed_out", []).append([index, key, count, len(session.records.get(key, []))])
+                if spec.get("stop_at_timeout", False):
+                    break
         alive_at_end = session.alive()
     finally:
         returncode = session.stop_estimator(stop_signal=spec.get("stop_signal", "SIGINT"))
@@ -369,7 +376,8 @@ def scenario(spec: dict[str, Any]) -> dict[str, Any]:
             "returncode": returncode, "log": log}
 
 
-def _run_step(session: RosSession, step: dict[str, Any], marks: dict[str, Any], results: dict[str, Any]) -> None:
+def _run_step(session: RosSession, step: dict[str, Any], marks: dict[str, Any], results: dict[str, Any]) -> bool:
+    """Run one scenario step; False when it was a wait_for that timed out."""
     if "publish" in step:
         pace = float(step.get("pace", 0.002))
         start = time.monotonic()
@@ -385,7 +393,7 @@ def _run_step(session: RosSession, step: dict[str, Any], marks: dict[str, Any], 
         session.spin_for(float(step["spin"]))
     elif "wait_for" in step:
         key, count, timeout = step["wait_for"]
-        session.spin_until(lambda: len(session.records.get(key, [])) >= count, float(timeout))
+        return session.spin_until(lambda: len(session.records.get(key, [])) >= count, float(timeout))
     elif "mark" in step:
         marks[step["mark"]] = {"t": time.monotonic(), "counts": {k: len(v) for k, v in session.records.items()},
                                "alive": session.alive()}
@@ -397,6 +405,7 @@ def _run_step(session: RosSession, step: dict[str, Any], marks: dict[str, Any], 
         results[step["as"]] = session.trigger(step["trigger"])
     else:
         raise ValueError(f"unknown scenario step {step}")
+    return True
 
 
 def _driver_main(argv: list[str]) -> int:

@@ -685,8 +685,10 @@ def test_use_sim_time_other_message_types_and_a_looping_bag(steering_type: str) 
         "publish_types": [["/clock", CLOCK], [VEL, "geometry_msgs/msg/TwistWithCovarianceStamped"],
                           [HEAD, "sensor_msgs/msg/Imu"], [STEER, steering_type]],
         "steps": [*steps, {"spin": 0.3}],
+        "stop_at_timeout": True,
     }, timeout=240)
     assert result["alive"] and result["returncode"] == 0, result["log"]
+    assert "timed_out" not in result["results"], (result["results"]["timed_out"], result["log"][-3000:])
     online = online_outputs(result["records"])
     assert max_relative_difference(online, reference + reference) <= 1e-9
     assert "ROS time jumped back" in result["log"]
