@@ -680,8 +680,9 @@ def test_use_sim_time_other_message_types_and_a_looping_bag(steering_type: str) 
     steps = []
     for loop in range(2):  # the second pass makes the clock jump back
         for start, end in zip([-math.inf, *steering_times[1:]], [*steering_times[1:], math.inf], strict=True):
-            step = [{**spec, "at": 0.0 if spec["topic"] == "/clock" else CLOCK_LEAD + 0.002 * k}
-                    for k, spec in enumerate(spec for t, _, spec in items if start <= t < end)]
+            messages = [spec for t, _, spec in items if start <= t < end]  # the step's /clock first
+            step = [{**message, "at": 0.0 if message["topic"] == "/clock" else CLOCK_LEAD + 0.002 * k}
+                    for k, message in enumerate(messages)]
             published = sum(row["t"] < t0 + end - 1e-6 for row in reference)
             steps += [{"publish": step},
                       {"wait_for": ["measurement", loop * len(reference) + published, 20.0]}]
