@@ -45,14 +45,12 @@ from transplanter_ident.ekf.adaptation import (
     DELAY_SETTLE,
     beyond_linear_range,
     forget_motion_bias,
-    held_bias_variance,
     known_to,
     noise_scale,
     propagate_delay_bias,
     propagate_inertia_bias,
     propagate_scale_bias,
     propagate_tire_bias,
-    saturation_share,
     score_model_errors,
 )
 from transplanter_ident.ekf.change import detect_change, normalised_update
@@ -60,7 +58,6 @@ from transplanter_ident.ekf.heading_signature import propagate_heading_bias
 from transplanter_ident.ekf.layout import (
     HEADING_STATES,
     M_ADAPT_UNTIL,
-    M_BIAS,
     M_CUSUM,
     M_DELAY_SETTLED,
     M_DIVERGED,
@@ -78,29 +75,16 @@ from transplanter_ident.ekf.layout import (
     N_MOTION_HEADING,
     N_MOTION_YAW_RATE,
     N_SHIFT,
-    O_CF,
-    O_CF_STD,
-    O_CORRELATION,
     O_DT,
     O_E0,
     O_E1,
-    O_HEADING_OFFSET,
-    O_HEADING_OFFSET_STD,
     O_NIS,
     O_NIS_CONFIGURED,
-    O_OFFSET,
-    O_OFFSET_STD,
-    O_R,
-    O_R_MODEL,
     O_S00,
     O_S01,
     O_S11,
     O_SLIP_F,
     O_SLIP_R,
-    O_STATUS,
-    O_TIRE_BIAS_F,
-    O_VY,
-    O_VY_MODEL,
     S_ANTENNA_X,
     S_CHANGE_DETECTION,
     S_GATE,
@@ -131,7 +115,7 @@ from transplanter_ident.ekf.layout import (
     Z_VY,
     StepStatus,
 )
-from transplanter_ident.ekf.measure_outputs import score_measures, write_measures, write_sensitivities
+from transplanter_ident.ekf.measure_outputs import score_measures
 from transplanter_ident.ekf.measurement_row import (
     body_speed,
     course_variance,
@@ -141,6 +125,7 @@ from transplanter_ident.ekf.measurement_row import (
     vy_row_times_column,
 )
 from transplanter_ident.ekf.noise_correlation import effective_noise, learn_noise, restart_noise_when_near
+from transplanter_ident.ekf.outputs import make_outputs
 from transplanter_ident.ekf.play_signature import propagate_play_bias
 from transplanter_ident.ekf.prediction import make_prediction
 from transplanter_ident.ekf.recovery import make_recovery
@@ -169,36 +154,14 @@ def make_kernels(heading, lagged=False):
     lag = N_LAG if lagged else 0
     n = (HEADING_STATES if heading else YAW_RATE_STATES) + lag
     nd = (N_MOTION_HEADING if heading else N_MOTION_YAW_RATE) + lag  # motion states and slip lags
-    nf, nr, nb, nh = nd, nd + 1, nd + 2, nd + 3  # theta_f, theta_r, steering offset, heading's misalignment
+    nf, nr, nb = nd, nd + 1, nd + 2  # theta_f, theta_r, steering offset (then h, the heading's misalignment)
     h1 = X_PSI if heading else X_R  # second measured state
     propagate_covariance, add_speed_noise, joseph_update, keep_speed_cross = make_update(n, nd, h1)
 
     prediction = make_prediction(heading, lagged)
     reset_motion, stiffness, predict_n, carry_lags, add_lag_noise, predict_inertia_gain, course_model_speed = prediction
 
-    @called_kernel
-    def write_outputs(x, p, memo, settings, status, r_model, vy_model, out):
-        out[O_STATUS] = status.value
-        out[O_VY] = x[X_VY]
-        out[O_R] = x[X_R]
-        share, unpinned = saturation_share(memo, settings)  # of the bias at min_friction (adaptation.py)
-        for k in range(2):  # front, rear; the std holds the saturation, delay and steering gain biases
-            c, dc = stiffness(x, settings, k)
-            bias = memo[M_BIAS + nf + k]
-            out[O_CF + k] = c + dc * share * bias
-            held = held_bias_variance(memo, settings, nf + k, unpinned)
-            out[O_CF_STD + k] = dc * math.sqrt(max(p[nf + k, nf + k], 0.0) + held)
-            out[O_TIRE_BIAS_F + k] = dc * bias / c if c != 0.0 else 0.0
-            write_sensitivities(memo, nf + k, k, c, dc, out)  # to a delay, a gain, a relaxation, a heading
-        out[O_OFFSET] = x[nb]
-        out[O_OFFSET_STD] = math.sqrt(max(p[nb, nb], 0.0))
-        denominator = math.sqrt(max(p[nf, nf], 0.0) * max(p[nr, nr], 0.0))
-        out[O_CORRELATION] = p[nf, nr] / denominator if denominator > 0.0 else 0.0
-        out[O_VY_MODEL] = vy_model
-        out[O_R_MODEL] = r_model
-        write_measures(memo, settings, out)
-        out[O_HEADING_OFFSET] = x[nh]
-        out[O_HEADING_OFFSET_STD] = math.sqrt(max(p[nh, nh], 0.0))
+    write_outputs = make_outputs(nd, stiffness)
 
     @called_kernel
     def restart_motion(x, p, model, memo, settings, status, t, vy_antenna, psi, yaw_rate, out):

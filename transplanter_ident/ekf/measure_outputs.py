@@ -5,7 +5,7 @@
 errors the innovations show (:func:`.adaptation.signature_estimate`: a GNSS delay, the tires'
 saturation, a relaxation length, a steering gain, a heading misalignment, a steering play), the factors
 on R and the innovations' correlation in time, and the directional change test's evidence; and
-(:func:`write_sensitivities`, with Cf and Cr, kernels.write_outputs) the stiffness's own sensitivity to
+(:func:`write_sensitivities`, with Cf and Cr, :mod:`.outputs`) the stiffness's own sensitivity to
 each error.
 """
 
