@@ -20,8 +20,8 @@ from transplanter_ident.ekf.joint_ekf import run_sequence
 from transplanter_ident.ekf.layout import StepStatus
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
 from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.evaluation.identifiability import Identifiability
 from transplanter_ident.evaluation.validity import (
-    Identifiability,
     Sample,
     ValidityMonitor,
     decide_sequence,

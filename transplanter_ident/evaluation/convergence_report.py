@@ -2,7 +2,7 @@
 
 Converged when both relative 1-sigma bands are within ``diagnostics.converged_rel_std``. The
 values add the band's scale / ratio decomposition and weak direction
-(:class:`.validity.Identifiability`), the tire-saturation bias carried in the band
+(:class:`.identifiability.Identifiability`), the tire-saturation bias carried in the band
 (``ekf.min_friction``), the factors on R the innovations have shown (``ekf.noise_adaptation``) and
 how far Cf and Cr move per ms of GNSS delay left out of ``gnss.delay`` (relative, first order), and
 that delay as the innovations show it (ms, and its std; std 0: not measured yet); likewise a tire
@@ -17,7 +17,7 @@ import math
 
 from transplanter_ident.ekf.joint_ekf import Estimate
 from transplanter_ident.evaluation.health_report import OK, WARN, HealthReport
-from transplanter_ident.evaluation.validity import Identifiability
+from transplanter_ident.evaluation.identifiability import Identifiability
 
 
 def convergence_report(node: str, estimate: Estimate | None, updates: int, limit: float) -> HealthReport:

@@ -23,7 +23,7 @@ from transplanter_ident.ekf.identifiability import SEGMENT, stiffness_informatio
 from transplanter_ident.ekf.joint_ekf import kernel_input
 from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD, O_OFFSET
 from transplanter_ident.epochs.epoch import EpochArrays
-from transplanter_ident.evaluation.validity import Identifiability
+from transplanter_ident.evaluation.identifiability import Identifiability
 
 
 @dataclass(frozen=True)

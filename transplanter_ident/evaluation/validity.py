@@ -35,9 +35,11 @@ RECHECK s of data (the same epochs online and offline).
 
 from __future__ import annotations
 
+import functools
 import math
+import operator
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -223,9 +225,9 @@ class ValidityMonitor:
 
     def _course_over_ground(self, window: list[Sample]) -> bool:
         """Whether vy stays well below what a steady turn gives at the antenna, while the vehicle turns."""
-        rms_r = math.sqrt(sum(w.yaw_rate ** 2 for w in window) / len(window))
-        rms_vy = math.sqrt(sum(w.antenna_lateral_velocity ** 2 for w in window) / len(window))
-        steady = sum(steady_antenna_vy(self.lever, self.rear_slip_gain, w.speed, w.cr, w.yaw_rate) ** 2 for w in window)
+        rms_r = math.sqrt(_ordered_sum(w.yaw_rate ** 2 for w in window) / len(window))
+        rms_vy = math.sqrt(_ordered_sum(w.antenna_lateral_velocity ** 2 for w in window) / len(window))
+        steady = _ordered_sum(steady_antenna_vy(self.lever, self.rear_slip_gain, w.speed, w.cr, w.yaw_rate) ** 2 for w in window)
         return rms_r > 0.05 and rms_vy < self.settings.course_ratio * math.sqrt(steady / len(window))
 
     def _suspect(self, window: list[Sample]) -> list[str]:
@@ -274,7 +276,7 @@ class ValidityMonitor:
                for w in window]
         used = [(w, x) for w, x in zip(window, nis, strict=True) if w.status in USED and math.isfinite(x)]
         if len(used) >= 5:
-            total, dof = sum(x for _, x in used), 2 * len(used)
+            total, dof = _ordered_sum(x for _, x in used), 2 * len(used)
             if total > dof + s.nis_quantile_sigmas * math.sqrt(2.0 * dof):
                 reasons.append(f"innovations inconsistent with R and Q (mean NIS {total / len(used):.1f}, "
                                "expected 2)")
@@ -305,18 +307,23 @@ def _frames_mixed(window: list[Sample]) -> bool:
     return den > 0.05 ** 2 * len(window) and num / den < -1.0
 
 
+def _ordered_sum(values: Iterable[float]) -> float:
+    """0.0 plus each value in order, as validity_batch's loops add (Python 3.12's ``sum`` compensates)."""
+    return functools.reduce(operator.add, values, 0.0)
+
+
 def _std(values: list[float]) -> float:
-    mean = sum(values) / len(values)
-    return math.sqrt(sum((v - mean) * (v - mean) for v in values) / len(values))  # a product, as validity_batch
+    mean = _ordered_sum(values) / len(values)
+    return math.sqrt(_ordered_sum((v - mean) * (v - mean) for v in values) / len(values))  # a product, as validity_batch
 
 
 def _lag1_autocorrelation(values: list[float]) -> float:
-    mean = sum(values) / len(values)
+    mean = _ordered_sum(values) / len(values)
     centred = [v - mean for v in values]
-    power = sum(c * c for c in centred)
+    power = _ordered_sum(c * c for c in centred)
     if power <= 0.0:
         return 0.0
-    return sum(a * b for a, b in zip(centred, centred[1:], strict=False)) / power
+    return _ordered_sum(a * b for a, b in zip(centred, centred[1:], strict=False)) / power
 
 
 def sample_of(epoch: Epoch, row: np.ndarray, rejected: int = 0) -> Sample:
@@ -364,37 +371,3 @@ def decide_sequence(config: EstimatorConfig, settings: ValiditySettings, epochs:
         return valid
     return np.array([monitor.step(sample_of(epochs[i], outputs[i], counts[i])).valid for i in range(len(epochs))],
                     dtype=bool)
-
-
-@dataclass(frozen=True)
-class Identifiability:
-    """Which combination of the stiffnesses the data pin down (from the covariance of ln Cf, ln Cr).
-
-    At 1 m/s on a held step the overall scale is nearly unknown while the ratio Cf/Cr is sharp; a
-    controller that needs only the ratio (the understeer gradient's sign) can still use it.
-    """
-
-    scale_std: float  # relative 1-sigma of sqrt(Cf Cr), the overall stiffness scale
-    ratio_std: float  # relative 1-sigma of Cf / Cr
-    weak_direction: tuple[float, float]  # unit vector in (ln Cf, ln Cr) of the largest uncertainty
-    weak_std: float  # 1-sigma along it
-    condition: float  # largest / smallest variance
-
-    @classmethod
-    def of(cls, rel_front: float, rel_rear: float, correlation: float) -> Identifiability:
-        """From the relative 1-sigma of Cf and Cr (= the 1-sigma of their logs) and their correlation."""
-        a, b = rel_front ** 2, rel_rear ** 2
-        c = correlation * rel_front * rel_rear
-        half_trace, det = 0.5 * (a + b), a * b - c * c
-        spread = math.sqrt(max(half_trace ** 2 - det, 0.0))
-        big, small = half_trace + spread, max(half_trace - spread, 0.0)
-        vector = (c, big - a) if abs(c) > 1e-300 else ((1.0, 0.0) if a >= b else (0.0, 1.0))
-        norm = math.hypot(*vector)
-        return cls(scale_std=0.5 * math.sqrt(max(a + b + 2.0 * c, 0.0)), ratio_std=math.sqrt(max(a + b - 2.0 * c, 0.0)),
-                   weak_direction=(vector[0] / norm, vector[1] / norm), weak_std=math.sqrt(big),
-                   condition=big / small if small > 0.0 else math.inf)
-
-    def describe(self) -> str:
-        return (f"scale sqrt(Cf Cr) +- {100 * self.scale_std:.2g} %, ratio Cf/Cr +- {100 * self.ratio_std:.2g} %; "
-                f"weakest along ({self.weak_direction[0]:+.2f}, {self.weak_direction[1]:+.2f}) in (ln Cf, ln Cr), "
-                f"1-sigma {100 * self.weak_std:.2g} %")
