@@ -181,12 +181,14 @@ def _run(args: argparse.Namespace) -> int:
             backend.close()
 
 
-def _calibrate(args: argparse.Namespace, params: EstimatorParams, local: Backend,
-               estimated: dict[str, tuple[float, str]]) -> tuple[EstimatorParams, list[Any]]:
-    """The calibration searches asked for, ahead of Q/R: (the parameters with their estimates, the decoded bags).
+def _calibrate(args: argparse.Namespace, params: EstimatorParams, local: Backend
+               ) -> tuple[EstimatorParams, list[Any], dict[str, tuple[float, str]]]:
+    """The calibration searches asked for, ahead of Q/R.
 
-    Each estimate goes into ``estimated`` (key -> (value, the search's line)).
+    Returns the parameters with their estimates, the decoded bags, and the estimates (key -> (value, the
+    search's line)).
     """
+    estimated: dict[str, tuple[float, str]] = {}
     asked = [f"--{f.replace('_', '-')}" for f in CALIBRATIONS if getattr(args, f)]
     if asked and params.config.options.course:
         raise CliError(f"{', '.join(asked)}: not with ekf.measurement course. One antenna's course hardly tells them "
@@ -216,14 +218,13 @@ def _calibrate(args: argparse.Namespace, params: EstimatorParams, local: Backend
                                             steering_scale=args.estimate_steering_scale, yaw_inertia=args.estimate_yaw_inertia,
                                             relaxation=args.estimate_relaxation_length,
                                             tune_stiffness_noise=args.tune_stiffness_noise, cache=cache_dir(args))
-    return params, decoded
+    return params, decoded, estimated
 
 
 def _tune_bags(args: argparse.Namespace, params: EstimatorParams, local: Backend, remote: Backend) -> int:
     if args.report:
         check_report_path(args.report)
-    estimated: dict[str, tuple[float, str]] = {}  # calibration key -> (value, the search's line)
-    params, decoded = _calibrate(args, params, local, estimated)
+    params, decoded, estimated = _calibrate(args, params, local)
     epochs = [item.epochs for item in decoded]
     truths = [item.truth for item in decoded]
     config = params.config
