@@ -8,7 +8,7 @@ runs what a user runs, on a short simulated drive, so every kernel those runs ne
 1. ``tuner`` with the defaults (a tiny IPSO swarm, eqs. 15-20, with its report: Table 2, the
    Cramér-Rao bound, the validity), on all cores as a user's run;
 2. ``replay`` (the decoding kernels, the run over epochs, the validity);
-3. the node's warm-up (the compiled step, the information sum);
+3. the node's warm-up (the compiled step, the information sum, the validity's window checks);
 4. the paper's configuration (Euler eq. 10, linear stiffness, z = [vy, r]) as ``make demo``
    tunes and replays it.
 
@@ -63,8 +63,11 @@ def _node_warm_up() -> None:
     """What the node runs before it subscribes (the default parameters)."""
     from transplanter_ident.config.params_file import EstimatorParams
     from transplanter_ident.ekf.joint_ekf import warm_up
+    from transplanter_ident.evaluation import validity
 
-    warm_up(EstimatorParams().config)
+    params = EstimatorParams()
+    warm_up(params.config)
+    validity.warm_up(params.config, params.validity)
 
 
 def main(argv: list[str] | None = None) -> int:

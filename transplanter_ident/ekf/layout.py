@@ -18,6 +18,8 @@ their slots so that no kernel writes a bare number:
 * work buffer (WORK_SLOTS, WORK_SIZE, WORK_SIZE): scratch matrices (``W_*``) and vectors
   (rows ``V_*`` of slot ``W_VEC``);
 * :class:`StepStatus`: what the step did with an epoch (an IntEnum: a constant to numba).
+* validity limits (N_LIMITS,): the thresholds of the validity's window checks (``L_*``,
+  evaluation/window_checks.py).
 """
 
 from __future__ import annotations
@@ -209,6 +211,13 @@ G_K0, G_K1, G_HP0, G_HP1 = 0, 1, 2, 3
 # and the prediction with Iz x (1 + INERTIA_STEP), then d x_{k+1} / d ln Iz (prediction.predict_inertia_gain)
 B_DIRECT, B_INERTIA = 0, 1
 B_VEHICLE = 2  # the vehicle constants with Iz x (1 + INERTIA_STEP) (prediction.predict_inertia_gain)
+
+
+# the validity's window checks: their thresholds (evaluation/window_checks.window_limits)
+L_WINDOW, L_RECHECK, L_MAX_SIDESLIP, L_MIXED_FLOOR, L_COURSE_RATIO = 0, 1, 2, 3, 4
+L_MAX_NONLINEAR, L_MIN_STEERING_STD, L_MIN_YAW_RATE_STD, L_NIS_SIGMAS, L_MAX_AUTOCORRELATION = 5, 6, 7, 8, 9
+L_HOLD_ON, L_HOLD_OFF, L_MAX_SUSPECT, L_DRIFT_WINDOW, L_MAX_DRIFT_SIGMAS, L_MIN_DRIFT_UPDATES = 10, 11, 12, 13, 14, 15
+N_LIMITS = 16
 
 
 class StepStatus(enum.IntEnum):

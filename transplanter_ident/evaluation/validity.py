@@ -30,16 +30,15 @@ of these hold over a window of data time (the same decision online and offline):
 
 Hysteresis: valid only after every check held for ``hold_on`` s; invalid once any has failed
 for ``hold_off`` s (at once for the plausibility and bound checks). The window checks run every
-RECHECK s of data (the same epochs online and offline).
+RECHECK s of data (the same epochs online and offline), with the kernels of :mod:`.window_checks`
+that the batch decision (:mod:`.validity_batch`) runs too; this module words their verdicts.
 """
 
 from __future__ import annotations
 
-import functools
 import math
-import operator
 from collections import deque
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -65,13 +64,15 @@ from transplanter_ident.ekf.layout import (
 )
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
 from transplanter_ident.evaluation.model_errors import MODEL_ERRORS, Measure, measures_of, misalignment_note
-from transplanter_ident.evaluation.validity_batch import (
-    MIN_DRIFT_UPDATES,
+from transplanter_ident.evaluation.validity_batch import consistency_nis, decide_batch
+from transplanter_ident.evaluation.window_checks import (
     PREDICTED,
-    USED,
-    consistency_nis,
-    decide_batch,
-    steady_antenna_vy,
+    WindowColumns,
+    drift_checks,
+    plausibility_checks,
+    soft_checks,
+    window_columns,
+    window_limits,
 )
 
 #: s of data between two evaluations of the window checks
@@ -156,9 +157,7 @@ class ValidityMonitor:
         self._keep_updates(sample)
         if sample.t - self._checked_at >= RECHECK:
             self._checked_at = sample.t
-            window = list(self._window)
-            self._window_hard = self._plausibility(window)
-            self._window_soft = self._suspect(window) + self._consistency(window) + self._drift()
+            self._window_hard, self._window_soft = self._window_checks(list(self._window))
         hard = self._bounds(sample) + self._window_hard
         soft = self._epoch_checks(sample) + self._window_soft + list(self.setup)
         self.last = self._hysteresis(sample.t, hard, soft)
@@ -206,37 +205,29 @@ class ValidityMonitor:
                            f"{100 * sample.change_evidence:.0f} % of its alarm level (the estimate may lag a new surface)")
         return reasons
 
-    def _plausibility(self, window: list[Sample]) -> list[str]:
-        reasons = []
-        predicted = [w for w in window if w.status in PREDICTED and w.speed > 0.0]
-        if len(predicted) >= 5:
-            sideslip = sorted(abs(w.antenna_lateral_velocity - self.antenna_x * w.yaw_rate) / w.speed
-                              for w in predicted)[len(predicted) // 2]  # at the CG
-            if sideslip > self.settings.max_sideslip:
-                reasons.append(f"implausible sideslip (median |vy/vx| {sideslip:.2f}): GNSS velocity and heading "
-                               "disagree; check frames.velocity / frames.heading (ENU or NED)")
-            elif _frames_mixed(predicted):
-                reasons.append("the GNSS velocity turns against the heading (its direction changes at -r): "
-                               "check frames.velocity / frames.heading (ENU or NED)")
-            if not self.course and self._course_over_ground(predicted):
-                reasons.append("the heading looks like a course over ground (vy stays ~0 while the vehicle "
-                               "turns): use a dual-antenna heading, or ekf.measurement course for one antenna")
-        return reasons
+    def _window_checks(self, window: list[Sample]) -> tuple[list[str], list[str]]:
+        """(hard, soft) reasons of the window checks (window_checks.py: the batch's kernels, on this window)."""
+        limits = window_limits(self.settings, RECHECK, self.course)
+        c = self._columns(window)
+        hard = _plausibility_reasons(*plausibility_checks(0, len(c.plaus), c.sideslip, c.rate, c.yaw_rate, c.plaus,
+                                                          c.r_sq, c.vy_sq, c.steady_sq, limits))
+        soft = _soft_reasons(*soft_checks(0, len(window) - 1, c.t, c.nonlinear, c.steering, c.yaw_rate, c.suspect,
+                                          c.consist, c.nis, c.whitened, limits),
+                             window=len(window), rejected=sum(w.rejected for w in window))
+        updates = np.array([(f, r) for _, f, r in self._updates], dtype=np.float64).reshape(-1, 2)
+        return hard, soft + _drift_reasons(*drift_checks(0, len(updates) - 1, updates, limits))
 
-    def _course_over_ground(self, window: list[Sample]) -> bool:
-        """Whether vy stays well below what a steady turn gives at the antenna, while the vehicle turns."""
-        rms_r = math.sqrt(_ordered_sum(w.yaw_rate ** 2 for w in window) / len(window))
-        rms_vy = math.sqrt(_ordered_sum(w.antenna_lateral_velocity ** 2 for w in window) / len(window))
-        steady = _ordered_sum(steady_antenna_vy(self.lever, self.rear_slip_gain, w.speed, w.cr, w.yaw_rate) ** 2 for w in window)
-        return rms_r > 0.05 and rms_vy < self.settings.course_ratio * math.sqrt(steady / len(window))
-
-    def _suspect(self, window: list[Sample]) -> list[str]:
-        suspect = sum(1 for w in window if w.rejected or w.status in DISTRUSTED)
-        if suspect <= self.settings.max_suspect_fraction * len(window):
-            return []
-        rejected = sum(w.rejected for w in window)
-        return [f"input suspect: {suspect} of the window's {len(window)} epochs follow a rejected sample or were "
-                f"gated or rolled back ({rejected} samples rejected; see the input lines of /diagnostics)"]
+    def _columns(self, window: list[Sample]) -> WindowColumns:
+        """The window checks' terms of the window, as validity_batch builds them of a whole replay."""
+        t, speed, vy, yaw_rate, steering, cr, nis_measured, nis, whitened, factor_vy, factor_second = np.array(
+            [(w.t, w.speed, w.antenna_lateral_velocity, w.yaw_rate, w.steering, w.cr, w.nis_measured, w.nis,
+              w.whitened_vy, *w.noise_factors) for w in window], dtype=np.float64).reshape(-1, 11).T.copy()
+        status = np.array([int(w.status) for w in window], dtype=np.int64)
+        suspect = np.array([w.rejected != 0 or w.status in DISTRUSTED for w in window], dtype=np.bool_)
+        return window_columns(t, status, speed, vy, yaw_rate, steering, cr,
+                              consistency_nis(np.maximum(factor_vy, factor_second), nis_measured, nis,
+                                              self.settings.max_noise_factor),
+                              whitened, suspect, (self.lever, self.rear_slip_gain, self.antenna_x))
 
     def _keep_updates(self, sample: Sample) -> None:
         if sample.change:
@@ -246,84 +237,53 @@ class ValidityMonitor:
         while self._updates and self._updates[0][0] < sample.t - self.settings.drift_window:
             self._updates.popleft()
 
-    def _drift(self) -> list[str]:
-        n = len(self._updates)
-        if self.settings.drift_window <= 0.0 or n < MIN_DRIFT_UPDATES:
-            return []
-        total_f = total_r = 0.0
-        for _, update_f, update_r in self._updates:  # in order: validity_batch sums alike
-            total_f += update_f
-            total_r += update_r
-        limit = self.settings.max_drift_sigmas * math.sqrt(n)
-        return [f"{name} keeps moving {'up' if total > 0.0 else 'down'} (its last {n} updates sum to "
-                f"{total / math.sqrt(n):+.1f} sqrt(n) of their std): the stiffness drifts faster than "
-                "ekf.process_noise lets the estimate follow (a changing surface or load), so the band lags it"
-                for name, total in (("Cf", total_f), ("Cr", total_r)) if abs(total) > limit]
 
-    def _consistency(self, window: list[Sample]) -> list[str]:
-        s = self.settings
-        if len(window) < 5 or window[-1].t - window[0].t < 0.5 * s.window:
-            return ["too little data in the window"]
-        reasons = []
-        nonlinear = sum(w.status is StepStatus.NONLINEAR for w in window) / len(window)
-        if nonlinear > s.max_nonlinear_fraction:
-            reasons.append(f"the tires left their linear range in {100 * nonlinear:.0f} % of the window: the "
-                           "linear stiffness does not describe them")
-        if _std([w.steering for w in window]) < s.min_steering_std and \
-                _std([w.yaw_rate for w in window]) < s.min_yaw_rate_std:
-            reasons.append("too little excitation (steering and yaw rate nearly constant)")
-        nis = [float(consistency_nis(np.maximum(*w.noise_factors), w.nis_measured, w.nis, s.max_noise_factor))
-               for w in window]
-        used = [(w, x) for w, x in zip(window, nis, strict=True) if w.status in USED and math.isfinite(x)]
-        if len(used) >= 5:
-            total, dof = _ordered_sum(x for _, x in used), 2 * len(used)
-            if total > dof + s.nis_quantile_sigmas * math.sqrt(2.0 * dof):
-                reasons.append(f"innovations inconsistent with R and Q (mean NIS {total / len(used):.1f}, "
-                               "expected 2)")
-            rho = _lag1_autocorrelation([w.whitened_vy for w, _ in used])
-            if rho > s.max_autocorrelation:
-                reasons.append(f"innovations correlated in time (lag-1 {rho:.2f}): an unconfigured GNSS delay "
-                               "(gnss.delay) or lever arm, or GNSS errors correlated in time (a receiver smoothing "
-                               "its velocity or heading), which the filter takes as white?")
-        return reasons
+def _plausibility_reasons(median: float, too_large: bool, mixed: bool, course: bool) -> list[str]:
+    """The words of window_checks.plausibility_checks' verdicts."""
+    reasons = []
+    if too_large:
+        reasons.append(f"implausible sideslip (median |vy/vx| {median:.2f}): GNSS velocity and heading "
+                       "disagree; check frames.velocity / frames.heading (ENU or NED)")
+    if mixed:
+        reasons.append("the GNSS velocity turns against the heading (its direction changes at -r): "
+                       "check frames.velocity / frames.heading (ENU or NED)")
+    if course:
+        reasons.append("the heading looks like a course over ground (vy stays ~0 while the vehicle "
+                       "turns): use a dual-antenna heading, or ekf.measurement course for one antenna")
+    return reasons
 
 
-def _frames_mixed(window: list[Sample]) -> bool:
-    """Whether the antenna's sideslip turns at about -2 r, so that the course changes at -r.
-
-    That is what swapped east and north (or a reversed heading sense) look like; right frames give a
-    slope near 0.
-    """
-    num = den = 0.0
-    for a, b in zip(window, window[1:], strict=False):
-        dt = b.t - a.t
-        if dt <= 0.0:
-            continue
-        beta_a = math.atan2(a.antenna_lateral_velocity, a.speed)
-        beta_b = math.atan2(b.antenna_lateral_velocity, b.speed)
-        rate = math.remainder(beta_b - beta_a, 2.0 * math.pi) / dt
-        num += rate * b.yaw_rate
-        den += b.yaw_rate * b.yaw_rate
-    return den > 0.05 ** 2 * len(window) and num / den < -1.0
-
-
-def _ordered_sum(values: Iterable[float]) -> float:
-    """0.0 plus each value in order, as validity_batch's loops add (Python 3.12's ``sum`` compensates)."""
-    return functools.reduce(operator.add, values, 0.0)
-
-
-def _std(values: list[float]) -> float:
-    mean = _ordered_sum(values) / len(values)
-    return math.sqrt(_ordered_sum((v - mean) * (v - mean) for v in values) / len(values))  # a product, as validity_batch
+def _soft_reasons(suspects: int, suspect_fails: bool, too_little: bool, nonlinear: float, too_nonlinear: bool,  # noqa: PLR0913
+                  unexcited: bool, mean_nis: float, nis_fails: bool, rho: float, rho_fails: bool, *, window: int,
+                  rejected: int) -> list[str]:
+    """The words of window_checks.soft_checks' verdicts (``window`` epochs, ``rejected`` samples rejected)."""
+    reasons = []
+    if suspect_fails:
+        reasons.append(f"input suspect: {suspects} of the window's {window} epochs follow a rejected sample or were "
+                       f"gated or rolled back ({rejected} samples rejected; see the input lines of /diagnostics)")
+    if too_little:
+        return [*reasons, "too little data in the window"]
+    if too_nonlinear:
+        reasons.append(f"the tires left their linear range in {100 * nonlinear:.0f} % of the window: the "
+                       "linear stiffness does not describe them")
+    if unexcited:
+        reasons.append("too little excitation (steering and yaw rate nearly constant)")
+    if nis_fails:
+        reasons.append(f"innovations inconsistent with R and Q (mean NIS {mean_nis:.1f}, expected 2)")
+    if rho_fails:
+        reasons.append(f"innovations correlated in time (lag-1 {rho:.2f}): an unconfigured GNSS delay "
+                       "(gnss.delay) or lever arm, or GNSS errors correlated in time (a receiver smoothing "
+                       "its velocity or heading), which the filter takes as white?")
+    return reasons
 
 
-def _lag1_autocorrelation(values: list[float]) -> float:
-    mean = _ordered_sum(values) / len(values)
-    centred = [v - mean for v in values]
-    power = _ordered_sum(c * c for c in centred)
-    if power <= 0.0:
-        return 0.0
-    return _ordered_sum(a * b for a, b in zip(centred, centred[1:], strict=False)) / power
+def _drift_reasons(count: int, total_f: float, total_r: float, drift_f: bool, drift_r: bool) -> list[str]:
+    """The words of window_checks.drift_checks' verdicts."""
+    root = math.sqrt(count)
+    return [f"{name} keeps moving {'up' if total > 0.0 else 'down'} (its last {count} updates sum to "
+            f"{total / root:+.1f} sqrt(n) of their std): the stiffness drifts faster than "
+            "ekf.process_noise lets the estimate follow (a changing surface or load), so the band lags it"
+            for name, total, fails in (("Cf", total_f, drift_f), ("Cr", total_r, drift_r)) if fails]
 
 
 def sample_of(epoch: Epoch, row: np.ndarray, rejected: int = 0) -> Sample:
@@ -346,6 +306,14 @@ def monitor_for(config: EstimatorConfig, settings: ValiditySettings) -> Validity
     rear_slip_gain = vehicle.mass * vehicle.lf / (2.0 * (vehicle.lf + vehicle.lr))
     return ValidityMonitor(settings, config.options.stiffness_bounds, vehicle.lr + vehicle.antenna_x, vehicle.antenna_x,
                            rear_slip_gain, config.options.course, setup_reasons(config))
+
+
+def warm_up(config: EstimatorConfig, settings: ValiditySettings) -> None:
+    """Run the window checks once (load or compile their kernels): the node's first check then waits for none."""
+    monitor_for(config, settings).step(Sample(
+        t=0.0, status=StepStatus.UPDATED, cf=1.0e4, cr=1.0e4, cf_std=1.0, cr_std=1.0,
+        steering=0.0, yaw_rate=0.0, speed=1.0, antenna_lateral_velocity=0.0, nis=2.0, nis_measured=2.0,
+        noise_factors=(1.0, 1.0), whitened_vy=0.0))
 
 
 def setup_reasons(config: EstimatorConfig) -> tuple[str, ...]:

@@ -1,23 +1,27 @@
 """The validity decision of a whole replay at once: :class:`~.validity.ValidityMonitor`'s, bit for bit.
 
-Feeding 72k epochs one by one through the monitor costs about a second of Python, most of it in
-the window checks that run every RECHECK s over ~10 s of data. Offline every epoch is known, so
-the per-epoch terms are computed as columns (with the monitor's own operations; ``math`` where it
-uses ``math``: atan2, remainder and the squares of r and vy, which it takes with ``**``), and a
-compiled kernel runs the monitor's sequence: the window bounds, the window checks with sums in the
-monitor's order, and the hysteresis. Sequences whose times do not strictly increase (the monitor
-would reset) return None, and the caller runs the monitor.
+Feeding 72k epochs one by one through the monitor costs about a second of Python. Offline every
+epoch is known, so the per-epoch checks are computed as columns (with the monitor's own
+operations), the window checks' terms with the monitor's :func:`~.window_checks.window_columns`,
+and a compiled kernel runs the monitor's sequence: the window bounds, the window checks
+(:mod:`.window_checks`, which the monitor runs too) every RECHECK s, and the hysteresis. Sequences
+whose times do not strictly increase (the monitor would reset) return None, and the caller runs the
+monitor.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable, Sequence
 
 import numpy as np
 
 from transplanter_ident.config.parameters import ValiditySettings
 from transplanter_ident.ekf.layout import (
+    L_DRIFT_WINDOW,
+    L_HOLD_OFF,
+    L_HOLD_ON,
+    L_RECHECK,
+    L_WINDOW,
     O_CF,
     O_CF_STD,
     O_CHANGE,
@@ -37,26 +41,15 @@ from transplanter_ident.ekf.layout import (
 )
 from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.evaluation.model_errors import MODEL_ERRORS
+from transplanter_ident.evaluation.window_checks import (
+    PREDICTED,
+    drift_checks,
+    plausibility_checks,
+    soft_checks,
+    window_columns,
+    window_limits,
+)
 from transplanter_ident.jit import entry_kernel
-
-#: statuses whose innovation is a proper one-step prediction error (the plausibility checks' epochs)
-PREDICTED = frozenset({StepStatus.UPDATED, StepStatus.NONLINEAR, StepStatus.GATED})
-#: of those, the ones whose measurement the filter used: the consistency test's. A gated outlier (one
-#: sample with a wrong stamp: a NIS of hundreds) is the suspect check's; in the NIS sum it failed the
-#: whole window for its length (10 s) while the estimate had not taken it
-USED = frozenset({StepStatus.UPDATED, StepStatus.NONLINEAR})
-#: fewer stiffness updates in the drift test's span: no verdict (ValidityMonitor._drift, _drifting)
-MIN_DRIFT_UPDATES = 10
-
-
-def steady_antenna_vy(lever: float, rear_slip_gain: float, speed: float, cr: float, yaw_rate: float) -> float:
-    """The antenna's vy in a steady turn at ``yaw_rate``: (lr + antenna_x) r less the rear tires' slip.
-
-    The rear axle slides out by vx alpha_r = m lf vx^2 r / (2 (lf + lr) Cr) (eq. 4 in steady state);
-    ``rear_slip_gain`` is m lf / (2 (lf + lr)), ``cr`` the estimated Cr. An antenna just behind the
-    CG, where that slip cancels the kinematic (lr + antenna_x) r, sees a vy near zero with a true heading.
-    """
-    return (lever - rear_slip_gain * speed * speed / cr) * yaw_rate
 
 
 def noise_factor(outputs: np.ndarray) -> np.ndarray:
@@ -83,7 +76,7 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
     ``rejected``: per epoch, the samples rejected since the previous one (Sample.rejected);
     ``distrusted``: the statuses that make an epoch suspect (validity.DISTRUSTED); ``antenna_x``: the
     antenna ahead of the CG (the sideslip check takes vy at the CG, ValidityMonitor.antenna_x);
-    ``rear_slip_gain``: the course-over-ground check's (:func:`steady_antenna_vy`, ValidityMonitor.rear_slip_gain);
+    ``rear_slip_gain``: the course-over-ground check's (window_checks.steady_antenna_vy, ValidityMonitor.rear_slip_gain);
     ``course``: the filter measures a course (ekf.measurement course), so that check is off; ``setup``: the set-up
     alone rules every epoch out (validity.setup_reasons).
     """
@@ -97,13 +90,9 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
     if not np.all(outputs[:, O_STATUS] == status) or not np.isin(status, [int(s) for s in StepStatus]).all():
         return None
     predicted = np.isin(status, [int(s) for s in PREDICTED])
-    used = np.isin(status, [int(s) for s in USED])
     suspect = (np.asarray(rejected, dtype=np.int64).reshape(-1) != 0) | np.isin(status, [int(s) for s in distrusted])
     if len(suspect) != n:
         return None
-    speed = np.ascontiguousarray(epochs.speed, dtype=np.float64)
-    vy = np.ascontiguousarray(epochs.antenna_lateral_velocity, dtype=np.float64)
-    r = np.ascontiguousarray(epochs.yaw_rate, dtype=np.float64)
     cf, cr, cf_std, cr_std = (outputs[:, i] for i in (O_CF, O_CR, O_CF_STD, O_CR_STD))
     low, high = bounds
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -118,39 +107,23 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
         s00 = outputs[:, O_S00]
         whitened = np.divide(outputs[:, O_E0], np.sqrt(np.where(s00 > 0.0, s00, 1.0)), where=s00 > 0.0,
                              out=np.zeros(n))
-        sideslip = np.abs(vy - antenna_x * r) / speed  # at the CG
-    nis = np.ascontiguousarray(consistency_nis(noise_factor(outputs), outputs[:, O_NIS], outputs[:, O_NIS_CONFIGURED],
-                                               settings.max_noise_factor), dtype=np.float64)
-    plaus = np.flatnonzero(predicted & (speed > 0.0))  # the plausibility checks' epochs
-    consist = np.flatnonzero(used & np.isfinite(nis))  # the NIS and autocorrelation checks' epochs
-    beta = list(map(math.atan2, vy[plaus].tolist(), speed[plaus].tolist()))
-    tp, rp = t[plaus].tolist(), r[plaus].tolist()
-    rate = np.zeros(len(plaus))  # course change rate from the previous plausibility epoch to this one
-    rate[1:] = [math.remainder(b1 - b0, 2.0 * math.pi) / (t1 - t0)
-                for b0, b1, t0, t1 in zip(beta, beta[1:], tp, tp[1:], strict=False)]
-    r_sq = np.array([x ** 2 for x in rp])
-    vy_sq = np.array([x ** 2 for x in vy[plaus].tolist()])
-    steady_sq = np.array([steady_antenna_vy(lever, rear_slip_gain, v, c, x) ** 2
-                          for v, c, x in zip(speed[plaus].tolist(), cr[plaus].tolist(), rp, strict=True)])
-    s = settings
-    limits = np.array([s.window, recheck, s.max_sideslip, 0.05 ** 2, 0.0 if course else s.course_ratio,
-                       s.max_nonlinear_fraction, s.min_steering_std, s.min_yaw_rate_std, s.nis_quantile_sigmas,
-                       s.max_autocorrelation, s.hold_on, s.hold_off, s.max_suspect_fraction, s.drift_window,
-                       s.max_drift_sigmas, MIN_DRIFT_UPDATES])
+    nis = consistency_nis(noise_factor(outputs), outputs[:, O_NIS], outputs[:, O_NIS_CONFIGURED],
+                          settings.max_noise_factor)
+    columns = window_columns(t, status, np.ascontiguousarray(epochs.speed, dtype=np.float64),
+                             np.ascontiguousarray(epochs.antenna_lateral_velocity, dtype=np.float64),
+                             np.ascontiguousarray(epochs.yaw_rate, dtype=np.float64), epochs.steering, cr, nis,
+                             whitened, suspect, (lever, rear_slip_gain, antenna_x))
     updates = np.ascontiguousarray(outputs[:, [O_UPDATE_F, O_UPDATE_R]], dtype=np.float64)
-    return _decide_kernel(t, status == int(StepStatus.NONLINEAR), hard, soft, np.ascontiguousarray(epochs.steering),
-                          r, plaus, sideslip[plaus], rate, r_sq, vy_sq, steady_sq, consist, nis[consist],
-                          whitened[consist], suspect, updates, outputs[:, O_CHANGE] > 0.0, limits)
+    return _decide_kernel(hard, soft, *columns, updates, outputs[:, O_CHANGE] > 0.0,
+                          window_limits(settings, recheck, course))
 
 
 @entry_kernel
-def _decide_kernel(t, nonlinear, epoch_hard, epoch_soft, steering, r, plaus, sideslip, rate, r_sq, vy_sq,  # noqa: ANN001, ANN201, PLR0913
-                   steady_sq, consist, nis, whitened, suspect, updates, change, limits):
+def _decide_kernel(epoch_hard, epoch_soft, t, nonlinear, steering, yaw_rate, suspect, plaus, sideslip, rate, r_sq,  # noqa: ANN001, ANN201, PLR0913
+                   vy_sq, steady_sq, consist, nis, whitened, updates, change, limits):
     """ValidityMonitor.step over the sequence (times strictly increasing): the valid flag of every epoch."""
-    window, recheck, max_sideslip, mixed_floor, course_ratio = limits[0], limits[1], limits[2], limits[3], limits[4]
-    max_nonlinear, min_steering_std, min_yaw_rate_std = limits[5], limits[6], limits[7]
-    sigmas, max_rho, hold_on, hold_off, max_suspect = limits[8], limits[9], limits[10], limits[11], limits[12]
-    drift_window = limits[13]
+    window, recheck, drift_window = limits[L_WINDOW], limits[L_RECHECK], limits[L_DRIFT_WINDOW]
+    hold_on, hold_off = limits[L_HOLD_ON], limits[L_HOLD_OFF]
     n = len(t)
     valid_out = np.zeros(n, dtype=np.bool_)
     lo = 0
@@ -172,11 +145,14 @@ def _decide_kernel(t, nonlinear, epoch_hard, epoch_soft, steering, r, plaus, sid
             checked_at = t[i]
             a = np.searchsorted(plaus, lo)
             b = np.searchsorted(plaus, i, side="right")
-            window_hard = _plausible_not(a, b, sideslip, rate, r, plaus, r_sq, vy_sq, steady_sq, max_sideslip,
-                                         mixed_floor, course_ratio)
-            window_soft = suspect[lo:i + 1].sum() > max_suspect * (i - lo + 1) or _inconsistent(
-                lo, i, t, window, nonlinear, steering, r, consist, nis, whitened, max_nonlinear, min_steering_std,
-                min_yaw_rate_std, sigmas, max_rho) or _drifting(drift_lo, i, updates, limits)
+            _median, too_large, mixed, course = plausibility_checks(a, b, sideslip, rate, yaw_rate, plaus, r_sq,
+                                                                    vy_sq, steady_sq, limits)
+            window_hard = too_large or mixed or course
+            (_suspects, suspect_fails, too_little, _fraction, too_nonlinear, unexcited, _mean_nis, nis_fails, _rho,
+             rho_fails) = soft_checks(lo, i, t, nonlinear, steering, yaw_rate, suspect, consist, nis, whitened, limits)
+            _count, _total_f, _total_r, drift_f, drift_r = drift_checks(drift_lo, i, updates, limits)
+            window_soft = (suspect_fails or too_little or too_nonlinear or unexcited or nis_fails or rho_fails
+                           or drift_f or drift_r)
         hard = epoch_hard[i] or window_hard
         if hard or epoch_soft[i] or window_soft:
             good = False
@@ -192,102 +168,3 @@ def _decide_kernel(t, nonlinear, epoch_hard, epoch_soft, steering, r, plaus, sid
                 valid = True
         valid_out[i] = valid
     return valid_out
-
-
-@entry_kernel
-def _plausible_not(a, b, sideslip, rate, r, plaus, r_sq, vy_sq, steady_sq, max_sideslip, mixed_floor,  # noqa: ANN001, ANN201, PLR0913
-                   course_ratio):
-    """Whether ValidityMonitor._plausibility finds a reason, over plausibility epochs a..b-1."""
-    count = b - a
-    if count < 5:
-        return False
-    if np.sort(sideslip[a:b])[count // 2] > max_sideslip:
-        return True
-    num = 0.0
-    den = 0.0
-    for j in range(a + 1, b):
-        yaw_rate = r[plaus[j]]
-        num += rate[j] * yaw_rate
-        den += yaw_rate * yaw_rate
-    if den > mixed_floor * count and num / den < -1.0:
-        return True
-    sum_r = 0.0
-    sum_vy = 0.0
-    sum_steady = 0.0
-    for j in range(a, b):
-        sum_r += r_sq[j]
-        sum_vy += vy_sq[j]
-        sum_steady += steady_sq[j]
-    rms_r = np.sqrt(sum_r / count)
-    rms_vy = np.sqrt(sum_vy / count)
-    return rms_r > 0.05 and rms_vy < course_ratio * np.sqrt(sum_steady / count)
-
-
-@entry_kernel
-def _std(values):  # noqa: ANN001, ANN201
-    """validity._std: the population standard deviation, summed in order."""
-    total = 0.0
-    for v in values:
-        total += v
-    mean = total / len(values)
-    square = 0.0
-    for v in values:
-        square += (v - mean) * (v - mean)
-    return np.sqrt(square / len(values))
-
-
-@entry_kernel
-def _inconsistent(lo, i, t, window, nonlinear, steering, r, consist, nis, whitened, max_nonlinear,  # noqa: ANN001, ANN201, PLR0913
-                  min_steering_std, min_yaw_rate_std, sigmas, max_rho):
-    """Whether ValidityMonitor._consistency finds a reason, over epochs lo..i."""
-    count = i - lo + 1
-    if count < 5 or t[i] - t[lo] < 0.5 * window:
-        return True
-    if nonlinear[lo:i + 1].sum() / count > max_nonlinear:
-        return True
-    if _std(steering[lo:i + 1]) < min_steering_std and _std(r[lo:i + 1]) < min_yaw_rate_std:
-        return True
-    a = np.searchsorted(consist, lo)
-    b = np.searchsorted(consist, i, side="right")
-    m = b - a
-    if m < 5:
-        return False
-    total = 0.0
-    for j in range(a, b):
-        total += nis[j]
-    dof = 2 * m
-    if total > dof + sigmas * np.sqrt(2.0 * dof):
-        return True
-    mean = 0.0
-    for j in range(a, b):
-        mean += whitened[j]
-    mean = mean / m
-    power = 0.0
-    for j in range(a, b):
-        power += (whitened[j] - mean) * (whitened[j] - mean)
-    if power <= 0.0:
-        return False
-    lag = 0.0
-    for j in range(a + 1, b):
-        lag += (whitened[j - 1] - mean) * (whitened[j] - mean)
-    return lag / power > max_rho
-
-
-@entry_kernel
-def _drifting(lo, i, updates, limits):  # noqa: ANN001, ANN201
-    """Whether ValidityMonitor._drift finds a reason, over the updates of epochs lo..i (rows not both 0)."""
-    drift_window, max_sigmas, min_updates = limits[13], limits[14], limits[15]
-    if drift_window <= 0.0:
-        return False
-    count = 0
-    total_f = 0.0
-    total_r = 0.0
-    for j in range(lo, i + 1):
-        if updates[j, 0] != 0.0 or updates[j, 1] != 0.0:
-            count += 1
-            total_f += updates[j, 0]
-            total_r += updates[j, 1]
-    if count < min_updates:
-        return False
-    limit = max_sigmas * np.sqrt(count)
-    return abs(total_f) > limit or abs(total_r) > limit

@@ -61,6 +61,7 @@ from transplanter_ident.epochs.settings import input_roles
 from transplanter_ident.evaluation.health import HealthMonitor, HealthReport, should_publish
 from transplanter_ident.evaluation.identifiability_report import identifiability_report
 from transplanter_ident.evaluation.validity import monitor_for, sample_of
+from transplanter_ident.evaluation.validity import warm_up as warm_up_validity
 from transplanter_ident.evaluation.windows import Throttle, reason_class
 from transplanter_ident.files import OptionalOutput
 from transplanter_ident.ros import adapters
@@ -88,6 +89,7 @@ class EstimatorNode(Node):
         params = self._settings.params
         self._ekf = JointEKF(params.config)
         warm_up(params.config)
+        warm_up_validity(params.config, params.validity)
         self._assembler = EpochAssembler(AssemblerSettings.from_params(params))
         topics = params.topics
         self._topics = {role: getattr(topics, role) for role in input_roles(params)}  # no heading from one antenna
