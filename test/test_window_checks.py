@@ -1,4 +1,4 @@
-"""The validity's window checks (evaluation/window_checks.py) against slow, obvious versions.
+"""The validity's window checks and hysteresis (evaluation/window_checks.py, hysteresis.py) against slow, obvious versions.
 
 The monitor (online) and the batch (replay, tuner) both run these kernels, so they decide alike by
 construction (test_validity_batch.py checks the whole decision); here each kernel, with the terms
@@ -19,6 +19,7 @@ import numpy as np
 
 from transplanter_ident.config.parameters import ValiditySettings
 from transplanter_ident.ekf.layout import StepStatus
+from transplanter_ident.evaluation.hysteresis import hysteresis_step, initial_state
 from transplanter_ident.evaluation.window_checks import (
     MIN_DRIFT_UPDATES,
     PREDICTED,
@@ -205,3 +206,36 @@ def test_the_kernels_add_in_order() -> None:
     result = soft_checks(0, n - 1, t, np.zeros(n, dtype=np.bool_), np.ones(n), np.ones(n), np.zeros(n, dtype=np.bool_),
                          consist, nis, np.zeros(n), limits)
     assert result[6] == 0.0  # (1e16 + 1) - 1e16 in a loop; 1 / 12 compensated
+
+
+def slow_hysteresis(t: list[float], hard: list[bool], failing: list[bool], hold_on: float, hold_off: float) -> list[bool]:
+    """Valid once nothing failed for hold_on s; invalid once something failed for hold_off s, or at once if hard."""
+    valid, good_since, bad_since, out = False, None, None, []
+    for now, h, f in zip(t, hard, failing, strict=True):
+        if f:
+            good_since = None
+            bad_since = now if bad_since is None else bad_since
+            valid = valid and not (h or now - bad_since >= hold_off)
+        else:
+            bad_since = None
+            good_since = now if good_since is None else good_since
+            valid = valid or now - good_since >= hold_on
+        out.append(valid)
+    return out
+
+
+def test_the_hysteresis_kernel_is_the_rule_written_out() -> None:
+    rng = np.random.default_rng(4)
+    switches = 0
+    for _ in range(200):
+        n = int(rng.integers(1, 200))
+        t = np.cumsum(rng.uniform(0.05, 0.5, n)).tolist()
+        failing = (rng.random(n) < rng.choice((0.05, 0.3, 0.7))).tolist()
+        hard = [f and rng.random() < 0.3 for f in failing]
+        hold_on, hold_off = float(rng.choice((0.0, 1.0, 3.0))), float(rng.choice((0.0, 0.5, 1.0)))
+        state = initial_state()
+        fast = [hysteresis_step(state, now, h, f, hold_on, hold_off) for now, h, f in zip(t, hard, failing, strict=True)]
+        expected = slow_hysteresis(t, hard, failing, hold_on, hold_off)
+        assert fast == expected
+        switches += int(np.count_nonzero(np.diff(np.array(expected, dtype=int))))
+    assert switches > 200  # the sequences turn valid on and off

@@ -19,7 +19,7 @@ their slots so that no kernel writes a bare number:
   (rows ``V_*`` of slot ``W_VEC``);
 * :class:`StepStatus`: what the step did with an epoch (an IntEnum: a constant to numba).
 * validity limits (N_LIMITS,): the thresholds of the validity's window checks (``L_*``,
-  evaluation/window_checks.py).
+  evaluation/window_checks.py), and its hysteresis' state (N_HYSTERESIS,) (``H_*``).
 """
 
 from __future__ import annotations
@@ -218,6 +218,9 @@ L_WINDOW, L_RECHECK, L_MAX_SIDESLIP, L_MIXED_FLOOR, L_COURSE_RATIO = 0, 1, 2, 3,
 L_MAX_NONLINEAR, L_MIN_STEERING_STD, L_MIN_YAW_RATE_STD, L_NIS_SIGMAS, L_MAX_AUTOCORRELATION = 5, 6, 7, 8, 9
 L_HOLD_ON, L_HOLD_OFF, L_MAX_SUSPECT, L_DRIFT_WINDOW, L_MAX_DRIFT_SIGMAS, L_MIN_DRIFT_UPDATES = 10, 11, 12, 13, 14, 15
 N_LIMITS = 16
+# ... and the hysteresis' state (evaluation/hysteresis.py): NaN, a time not set
+H_VALID, H_GOOD_SINCE, H_BAD_SINCE = 0, 1, 2
+N_HYSTERESIS = 3
 
 
 class StepStatus(enum.IntEnum):

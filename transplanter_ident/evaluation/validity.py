@@ -29,7 +29,7 @@ of these hold over a window of data time (the same decision online and offline):
 * a set-up the data can vouch for (:func:`setup_reasons`): one antenna's course cannot show a timing error.
 
 Hysteresis: valid only after every check held for ``hold_on`` s; invalid once any has failed
-for ``hold_off`` s (at once for the plausibility and bound checks). The window checks run every
+for ``hold_off`` s (at once for the plausibility and bound checks; :mod:`.hysteresis`). The window checks run every
 RECHECK s of data (the same epochs online and offline), with the kernels of :mod:`.window_checks`
 that the batch decision (:mod:`.validity_batch`) runs too; this module words their verdicts.
 """
@@ -63,6 +63,7 @@ from transplanter_ident.ekf.layout import (
     StepStatus,
 )
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
+from transplanter_ident.evaluation.hysteresis import hysteresis_step, initial_state
 from transplanter_ident.evaluation.model_errors import MODEL_ERRORS, Measure, measures_of, misalignment_note
 from transplanter_ident.evaluation.validity_batch import consistency_nis, decide_batch
 from transplanter_ident.evaluation.window_checks import (
@@ -139,9 +140,7 @@ class ValidityMonitor:
     def reset(self) -> None:
         self._window: deque[Sample] = deque()
         self._updates: deque[tuple[float, float, float]] = deque()  # (t, update_f, update_r) of the drift test
-        self._valid = False
-        self._good_since: float | None = None
-        self._bad_since: float | None = None
+        self._hysteresis_state = initial_state()
         self._checked_at = -math.inf
         self._window_hard: list[str] = []
         self._window_soft: list[str] = []
@@ -165,17 +164,9 @@ class ValidityMonitor:
 
     def _hysteresis(self, t: float, hard: list[str], soft: list[str]) -> Decision:
         s = self.settings
-        if hard or soft:
-            self._good_since = None
-            self._bad_since = t if self._bad_since is None else self._bad_since
-            if hard or t - self._bad_since >= s.hold_off:
-                self._valid = False
-        else:
-            self._bad_since = None
-            self._good_since = t if self._good_since is None else self._good_since
-            if t - self._good_since >= s.hold_on:
-                self._valid = True
-        return Decision(self._valid, tuple(hard + soft), bool(hard))
+        valid = hysteresis_step(self._hysteresis_state, float(t), bool(hard), bool(hard or soft), float(s.hold_on),
+                                float(s.hold_off))
+        return Decision(valid, tuple(hard + soft), bool(hard))
 
     def _bounds(self, sample: Sample) -> list[str]:
         low, high = self.bounds

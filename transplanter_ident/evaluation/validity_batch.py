@@ -4,7 +4,8 @@ Feeding 72k epochs one by one through the monitor costs about a second of Python
 epoch is known, so the per-epoch checks are computed as columns (with the monitor's own
 operations), the window checks' terms with the monitor's :func:`~.window_checks.window_columns`,
 and a compiled kernel runs the monitor's sequence: the window bounds, the window checks
-(:mod:`.window_checks`, which the monitor runs too) every RECHECK s, and the hysteresis. Sequences
+(:mod:`.window_checks`, which the monitor runs too) every RECHECK s, and the hysteresis
+(:mod:`.hysteresis`, the monitor's too). Sequences
 whose times do not strictly increase (the monitor would reset) return None, and the caller runs the
 monitor.
 """
@@ -40,6 +41,7 @@ from transplanter_ident.ekf.layout import (
     StepStatus,
 )
 from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.evaluation.hysteresis import hysteresis_step, initial_state
 from transplanter_ident.evaluation.model_errors import MODEL_ERRORS
 from transplanter_ident.evaluation.window_checks import (
     PREDICTED,
@@ -115,13 +117,16 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
                              whitened, suspect, (lever, rear_slip_gain, antenna_x))
     updates = np.ascontiguousarray(outputs[:, [O_UPDATE_F, O_UPDATE_R]], dtype=np.float64)
     return _decide_kernel(hard, soft, *columns, updates, outputs[:, O_CHANGE] > 0.0,
-                          window_limits(settings, recheck, course))
+                          window_limits(settings, recheck, course), initial_state())
 
 
 @entry_kernel
 def _decide_kernel(epoch_hard, epoch_soft, t, nonlinear, steering, yaw_rate, suspect, plaus, sideslip, rate, r_sq,  # noqa: ANN001, ANN201, PLR0913
-                   vy_sq, steady_sq, consist, nis, whitened, updates, change, limits):
-    """ValidityMonitor.step over the sequence (times strictly increasing): the valid flag of every epoch."""
+                   vy_sq, steady_sq, consist, nis, whitened, updates, change, limits, state):
+    """ValidityMonitor.step over the sequence (times strictly increasing): the valid flag of every epoch.
+
+    ``state``: the hysteresis' (hysteresis.initial_state), updated.
+    """
     window, recheck, drift_window = limits[L_WINDOW], limits[L_RECHECK], limits[L_DRIFT_WINDOW]
     hold_on, hold_off = limits[L_HOLD_ON], limits[L_HOLD_OFF]
     n = len(t)
@@ -131,9 +136,6 @@ def _decide_kernel(epoch_hard, epoch_soft, t, nonlinear, steering, yaw_rate, sus
     checked_at = -np.inf
     window_hard = False
     window_soft = False
-    valid = False
-    good, bad = False, False  # whether good_since / bad_since are set
-    good_since = bad_since = 0.0
     for i in range(n):
         while t[lo] < t[i] - window:
             lo += 1
@@ -154,17 +156,5 @@ def _decide_kernel(epoch_hard, epoch_soft, t, nonlinear, steering, yaw_rate, sus
             window_soft = (suspect_fails or too_little or too_nonlinear or unexcited or nis_fails or rho_fails
                            or drift_f or drift_r)
         hard = epoch_hard[i] or window_hard
-        if hard or epoch_soft[i] or window_soft:
-            good = False
-            if not bad:
-                bad, bad_since = True, t[i]
-            if hard or t[i] - bad_since >= hold_off:
-                valid = False
-        else:
-            bad = False
-            if not good:
-                good, good_since = True, t[i]
-            if t[i] - good_since >= hold_on:
-                valid = True
-        valid_out[i] = valid
+        valid_out[i] = hysteresis_step(state, t[i], hard, hard or epoch_soft[i] or window_soft, hold_on, hold_off)
     return valid_out
