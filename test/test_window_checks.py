@@ -181,7 +181,7 @@ def test_the_kernels_are_the_checks_written_out() -> None:
         plausibility = plausibility_checks(0, len(c.plaus), c.sideslip, c.rate, c.yaw_rate, c.plaus, c.r_sq,
                                            c.vy_sq, c.steady_sq, limits)
         _same(plausibility, slow_plausibility(d, s, course), f"plausibility {case}", {0: s.max_sideslip})
-        soft = soft_checks(0, n - 1, c.t, c.nonlinear, c.steering, c.yaw_rate, c.suspect, c.consist, c.nis,
+        soft = soft_checks(0, n - 1, 0, len(c.consist), c.t, c.nonlinear, c.steering, c.yaw_rate, c.suspect, c.nis,
                            c.whitened, limits)
         _same(soft, slow_soft(d, s), f"soft {case}", {8: s.max_autocorrelation})
         drift = drift_checks(0, n - 1, np.array(d.updates, dtype=np.float64).reshape(-1, 2), limits)
@@ -201,10 +201,9 @@ def test_the_kernels_add_in_order() -> None:
     n = 12
     t = np.arange(n, dtype=np.float64)
     nis = np.array([1e16, 1.0, -1e16] + [0.0] * (n - 3))
-    consist = np.arange(n, dtype=np.int64)
     limits = window_limits(ValiditySettings(window=4.0), 1.0, False)
-    result = soft_checks(0, n - 1, t, np.zeros(n, dtype=np.bool_), np.ones(n), np.ones(n), np.zeros(n, dtype=np.bool_),
-                         consist, nis, np.zeros(n), limits)
+    result = soft_checks(0, n - 1, 0, n, t, np.zeros(n, dtype=np.bool_), np.ones(n), np.ones(n),
+                         np.zeros(n, dtype=np.bool_), nis, np.zeros(n), limits)
     assert result[6] == 0.0  # (1e16 + 1) - 1e16 in a loop; 1 / 12 compensated
 
 

@@ -202,8 +202,8 @@ class ValidityMonitor:
         c = self._columns(window)
         hard = _plausibility_reasons(*plausibility_checks(0, len(c.plaus), c.sideslip, c.rate, c.yaw_rate, c.plaus,
                                                           c.r_sq, c.vy_sq, c.steady_sq, limits))
-        soft = _soft_reasons(*soft_checks(0, len(window) - 1, c.t, c.nonlinear, c.steering, c.yaw_rate, c.suspect,
-                                          c.consist, c.nis, c.whitened, limits),
+        soft = _soft_reasons(*soft_checks(0, len(window) - 1, 0, len(c.consist), c.t, c.nonlinear, c.steering,
+                                          c.yaw_rate, c.suspect, c.nis, c.whitened, limits),
                              window=len(window), rejected=sum(w.rejected for w in window))
         updates = np.array([(f, r) for _, f, r in self._updates], dtype=np.float64).reshape(-1, 2)
         return hard, soft + _drift_reasons(*drift_checks(0, len(updates) - 1, updates, limits))

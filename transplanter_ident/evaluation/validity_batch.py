@@ -150,8 +150,10 @@ def _decide_kernel(epoch_hard, epoch_soft, t, nonlinear, steering, yaw_rate, sus
             _median, too_large, mixed, course = plausibility_checks(a, b, sideslip, rate, yaw_rate, plaus, r_sq,
                                                                     vy_sq, steady_sq, limits)
             window_hard = too_large or mixed or course
+            c0 = np.searchsorted(consist, lo)
+            c1 = np.searchsorted(consist, i, side="right")
             (_suspects, suspect_fails, too_little, _fraction, too_nonlinear, unexcited, _mean_nis, nis_fails, _rho,
-             rho_fails) = soft_checks(lo, i, t, nonlinear, steering, yaw_rate, suspect, consist, nis, whitened, limits)
+             rho_fails) = soft_checks(lo, i, c0, c1, t, nonlinear, steering, yaw_rate, suspect, nis, whitened, limits)
             _count, _total_f, _total_r, drift_f, drift_r = drift_checks(drift_lo, i, updates, limits)
             window_soft = (suspect_fails or too_little or too_nonlinear or unexcited or nis_fails or rho_fails
                            or drift_f or drift_r)

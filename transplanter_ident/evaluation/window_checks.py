@@ -53,7 +53,7 @@ from transplanter_ident.ekf.layout import (
     N_LIMITS,
     StepStatus,
 )
-from transplanter_ident.jit import entry_kernel
+from transplanter_ident.jit import entry_kernel, inline_kernel
 
 #: statuses whose innovation is a proper one-step prediction error (the plausibility checks' epochs)
 PREDICTED = frozenset({StepStatus.UPDATED, StepStatus.NONLINEAR, StepStatus.GATED})
@@ -188,7 +188,7 @@ def plausibility_checks(a, b, sideslip, rate, yaw_rate, plaus, r_sq, vy_sq, stea
     return median, too_large, mixed, course
 
 
-@entry_kernel
+@inline_kernel
 def population_std(values):  # noqa: ANN001, ANN201
     """The population standard deviation, summed in order."""
     total = 0.0
@@ -202,23 +202,28 @@ def population_std(values):  # noqa: ANN001, ANN201
 
 
 @entry_kernel
-def soft_checks(lo, i, t, nonlinear, steering, yaw_rate, suspect, consist, nis, whitened, limits):  # noqa: ANN001, ANN201, PLR0913
+def soft_checks(lo, i, a, b, t, nonlinear, steering, yaw_rate, suspect, nis, whitened, limits):  # noqa: ANN001, ANN201, PLR0913
     """The suspect, data, linear range, excitation, NIS and autocorrelation checks over epochs lo..i.
 
+    a..b-1: the consistency epochs among them (``consist``'s indices, as ``nis`` and ``whitened``).
     Returns (suspect count, suspect fails, too little data, nonlinear fraction, nonlinear fails,
-    unexcited, mean NIS, NIS fails, lag-1 autocorrelation, autocorrelation fails). With too little data the others are not judged (0, False; NaN for the NIS and the autocorrelation),
-    nor the NIS and autocorrelation with fewer than 5 consistency epochs.
+    unexcited, mean NIS, NIS fails, lag-1 autocorrelation, autocorrelation fails). With too little
+    data the others are not judged (0, False; NaN for the NIS and the autocorrelation), nor the NIS
+    and autocorrelation with fewer than 5 consistency epochs. Counted in loops: numba's array
+    ``sum`` and ``searchsorted`` would cost the node ~14 MB to load.
     """
     count = i - lo + 1
-    suspects = suspect[lo:i + 1].sum()
+    suspects = 0
+    nonlinears = 0
+    for j in range(lo, i + 1):
+        suspects += suspect[j]
+        nonlinears += nonlinear[j]
     suspect_fails = suspects > limits[L_MAX_SUSPECT] * count
     if count < 5 or t[i] - t[lo] < 0.5 * limits[L_WINDOW]:
         return suspects, suspect_fails, True, 0.0, False, False, np.nan, False, np.nan, False
-    fraction = nonlinear[lo:i + 1].sum() / count
+    fraction = nonlinears / count
     unexcited = population_std(steering[lo:i + 1]) < limits[L_MIN_STEERING_STD] and \
         population_std(yaw_rate[lo:i + 1]) < limits[L_MIN_YAW_RATE_STD]
-    a = np.searchsorted(consist, lo)
-    b = np.searchsorted(consist, i, side="right")
     m = b - a
     mean_nis, rho = np.nan, np.nan
     nis_fails = rho_fails = False
@@ -235,7 +240,7 @@ def soft_checks(lo, i, t, nonlinear, steering, yaw_rate, suspect, consist, nis, 
             nis_fails, rho, rho_fails)
 
 
-@entry_kernel
+@inline_kernel
 def _lag1_autocorrelation(values):  # noqa: ANN001, ANN201
     """The lag-1 autocorrelation of ``values`` about their mean, summed in order; 0 without variance."""
     m = len(values)
