@@ -105,6 +105,9 @@ ROWS: dict[str, dict[str, object]] = {
     "tanh tire, mu 0.5": {"tire": "saturating", "friction": 0.5},
     "tanh tire, mu 0.2": {"tire": "saturating", "friction": 0.2},
     "tanh tire, mu 0.3 (wet)": {"tire": "saturating", "friction": 0.3},
+    "tanh tire, mu 0.2, +-25 deg": {"tire": "saturating", "friction": 0.2, "steering": sine_steering(DEG(25.0), 6.0)},
+    "tanh tire, mu 0.2, 3 m/s": {"tire": "saturating", "friction": 0.2, "speed": 3.0},
+    "tanh tire, mu 0.2, 1.5 m/s, 180 s": {"tire": "saturating", "friction": 0.2, "speed": 1.5, "duration": 180.0},
     "tanh tire, mu 0.3, +-25 deg": {"tire": "saturating", "friction": 0.3, "steering": sine_steering(DEG(25.0), 6.0)},
     "tanh tire, mu 0.3, 3 m/s": {"tire": "saturating", "friction": 0.3, "speed": 3.0},
     "soft tires (3000/4000)": {"stiffness": StiffnessSchedule(front=(3000.0,), rear=(4000.0,))},
@@ -155,6 +158,7 @@ ROWS: dict[str, dict[str, object]] = {
 INDEPENDENT_ROWS: dict[str, dict[str, object]] = {
     "independent sim, Magic Formula mu 0.8": {},
     "independent sim, Magic Formula mu 0.3": {"friction": 0.3},
+    "independent sim, Magic Formula mu 0.2": {"friction": 0.2},
     "independent sim, relaxation 0.3 m": {"relaxation_length": 0.3},
     "independent sim, relaxation 0.3 m, set": {"relaxation_length": 0.3,
                                                "filter_vehicle": VehicleParams(relaxation_length=0.3)},

@@ -1,11 +1,12 @@
-"""The validity's window checks and hysteresis (evaluation/window_checks.py, hysteresis.py) against slow, obvious versions.
+"""The validity's shared checks: window_checks.py and hysteresis.py (kernels), epoch_checks.py (predicates).
 
-The monitor (online) and the batch (replay, tuner) both run these kernels, so they decide alike by
-construction (test_validity_batch.py checks the whole decision); here each kernel, with the terms
+The monitor (online) and the batch (replay, tuner) both run them, so they decide alike by
+construction (test_validity_batch.py checks the whole decision). Here each kernel, with the terms
 window_columns builds, is held against the checks written out in plain Python over the samples
 (statistics, math.fsum, sorted), on 400 random windows whose statistics fall on both sides of the
-thresholds. Values agree to 1e-9 (relative); the verdicts exactly (no draw lands within that of a
-threshold: the test asserts it).
+thresholds: values agree to 1e-9 (relative), the verdicts exactly (no draw lands within that of a
+threshold: the test asserts it). The hysteresis is held against its rule written out, and the epoch
+predicates give the same verdicts on one epoch's floats (the monitor) as on arrays (the batch).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import numpy as np
 
 from transplanter_ident.config.parameters import ValiditySettings
 from transplanter_ident.ekf.layout import StepStatus
+from transplanter_ident.evaluation import epoch_checks
 from transplanter_ident.evaluation.hysteresis import hysteresis_step, initial_state
 from transplanter_ident.evaluation.window_checks import (
     MIN_DRIFT_UPDATES,
@@ -238,3 +240,36 @@ def test_the_hysteresis_kernel_is_the_rule_written_out() -> None:
         assert fast == expected
         switches += int(np.count_nonzero(np.diff(np.array(expected, dtype=int))))
     assert switches > 200  # the sequences turn valid on and off
+
+
+def test_the_epoch_checks_decide_alike_on_floats_and_arrays() -> None:
+    """The monitor calls epoch_checks' predicates with one epoch's floats, the batch with arrays: same verdicts, NaN too."""
+    rng = np.random.default_rng(8)
+    n = 2000
+    bounds = (500.0, 60000.0)
+    cf = rng.choice([bounds[0], bounds[0] * 1.0101, bounds[1] / 1.01, 8000.0, math.nan], n)
+    cr = rng.uniform(400.0, 70000.0, n)
+    cf_std, cr_std = cf * rng.uniform(0.0, 0.1, n), cr * rng.uniform(0.0, 0.1, n)
+    cr_std[rng.random(n) < 0.05] = math.nan
+    factors = np.where(rng.random((n, 2)) < 0.05, math.nan, rng.uniform(0.5, 4.0, (n, 2)))
+    evidence = np.where(rng.random(n) < 0.05, math.nan, rng.uniform(0.0, 1.0, n))
+    nis = rng.chisquare(2, (n, 2))
+    settings = ValiditySettings(max_rel_std=0.05, max_noise_factor=2.25, max_change_evidence=0.5)
+    with np.errstate(invalid="ignore"):
+        arrays = (epoch_checks.pinned(cf, bounds), epoch_checks.relative_stds(cf, cr, cf_std, cr_std)[2],
+                  epoch_checks.noisier(factors[:, 0], factors[:, 1], settings),
+                  epoch_checks.change_suspected(evidence, settings),
+                  epoch_checks.consistency_nis(factors[:, 0], factors[:, 1], nis[:, 0], nis[:, 1], settings))
+    unconverged = epoch_checks.unconverged(arrays[1], settings)
+    for k in range(n):
+        worst = epoch_checks.relative_stds(float(cf[k]), float(cr[k]), float(cf_std[k]), float(cr_std[k]))[2]
+        assert bool(epoch_checks.pinned(float(cf[k]), bounds)) == arrays[0][k]
+        assert bool(epoch_checks.unconverged(worst, settings)) == unconverged[k]
+        assert bool(epoch_checks.noisier(float(factors[k, 0]), float(factors[k, 1]), settings)) == arrays[2][k]
+        assert bool(epoch_checks.change_suspected(float(evidence[k]), settings)) == arrays[3][k]
+        assert float(epoch_checks.consistency_nis(float(factors[k, 0]), float(factors[k, 1]), float(nis[k, 0]),
+                                                  float(nis[k, 1]), settings)) == arrays[4][k]
+    assert 0 < arrays[0].sum() < n and 0 < unconverged.sum() < n and 0 < arrays[2].sum() < n  # both ways
+    worst = np.maximum(cf_std / cf, cr_std / cr)
+    assert np.array_equal(unconverged[np.isfinite(worst)], worst[np.isfinite(worst)] > 0.05)  # the rule itself
+    assert unconverged[np.isnan(cf)].all()  # no stiffness: never converged

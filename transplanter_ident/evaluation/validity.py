@@ -63,9 +63,17 @@ from transplanter_ident.ekf.layout import (
     StepStatus,
 )
 from transplanter_ident.epochs.epoch import Epoch, EpochArrays
+from transplanter_ident.evaluation.epoch_checks import (
+    change_suspected,
+    consistency_nis,
+    noisier,
+    pinned,
+    relative_stds,
+    unconverged,
+)
 from transplanter_ident.evaluation.hysteresis import hysteresis_step, initial_state
 from transplanter_ident.evaluation.model_errors import MODEL_ERRORS, Measure, measures_of, misalignment_note
-from transplanter_ident.evaluation.validity_batch import consistency_nis, decide_batch
+from transplanter_ident.evaluation.validity_batch import decide_batch
 from transplanter_ident.evaluation.window_checks import (
     PREDICTED,
     WindowColumns,
@@ -98,7 +106,7 @@ class Sample:
     speed: float
     antenna_lateral_velocity: float
     nis: float  # against the configured R (layout.O_NIS_CONFIGURED)
-    nis_measured: float  # against R as the innovations show it (O_NIS; validity_batch.consistency_nis)
+    nis_measured: float  # against R as the innovations show it (O_NIS; epoch_checks.consistency_nis)
     noise_factors: tuple[float, float]  # on R (variance) as the innovations show it: velocity, heading (or r)
     whitened_vy: float  # e0 / sqrt(S00)
     rejected: int = 0  # input samples (and epochs) rejected since the previous epoch
@@ -169,29 +177,28 @@ class ValidityMonitor:
         return Decision(valid, tuple(hard + soft), bool(hard))
 
     def _bounds(self, sample: Sample) -> list[str]:
-        low, high = self.bounds
         return [f"{name} pinned at a stiffness bound ({value:.0f} N/rad): a wrong frame, lever arm or steering sign?"
-                for name, value in (("Cf", sample.cf), ("Cr", sample.cr)) if value <= low * 1.01 or value >= high / 1.01]
+                for name, value in (("Cf", sample.cf), ("Cr", sample.cr)) if pinned(value, self.bounds)]
 
     def _epoch_checks(self, sample: Sample) -> list[str]:
         reasons = []
         if sample.status not in PREDICTED:
             reasons.append(f"epoch status {sample.status.name}")
-        relative = (sample.cf_std / sample.cf, sample.cr_std / sample.cr)
-        worst = max(relative)
-        if not worst <= self.settings.max_rel_std:
-            reasons.append(f"not converged (relative 1-sigma {worst:.3f} > {self.settings.max_rel_std:g})")
+        front, rear, worst = relative_stds(sample.cf, sample.cr, sample.cf_std, sample.cr_std)
+        relative = (front, rear)
+        if unconverged(worst, self.settings):
+            reasons.append(f"not converged (relative 1-sigma {float(worst):.3f} > {self.settings.max_rel_std:g})")
         for error, measure in zip(MODEL_ERRORS, sample.measures, strict=False):  # a GNSS delay, a relaxation, a gain
             reason = error.reason(measure, relative, self.settings)
             if reason is not None:
                 reasons.append(reason)
-        if np.maximum(*sample.noise_factors) > self.settings.max_noise_factor:  # as validity_batch.noise_factor
+        if noisier(*sample.noise_factors, self.settings):
             reasons.append("GNSS noisier than ekf.measurement_noise: the innovations show {:.2f} x its variance "
                            "(velocity), {:.2f} x (heading), beyond validity.max_noise_factor {:g}; set "
                            "ekf.measurement_noise, or tune it".format(*sample.noise_factors,
                                                                       self.settings.max_noise_factor)
                            + misalignment_note(sample.measures))
-        if sample.change_evidence > self.settings.max_change_evidence:  # as validity_batch
+        if change_suspected(sample.change_evidence, self.settings):
             reasons.append(f"a stiffness change suspected: the directional change test stands at "
                            f"{100 * sample.change_evidence:.0f} % of its alarm level (the estimate may lag a new surface)")
         return reasons
@@ -216,8 +223,7 @@ class ValidityMonitor:
         status = np.array([int(w.status) for w in window], dtype=np.int64)
         suspect = np.array([w.rejected != 0 or w.status in DISTRUSTED for w in window], dtype=np.bool_)
         return window_columns(t, status, speed, vy, yaw_rate, steering, cr,
-                              consistency_nis(np.maximum(factor_vy, factor_second), nis_measured, nis,
-                                              self.settings.max_noise_factor),
+                              consistency_nis(factor_vy, factor_second, nis_measured, nis, self.settings),
                               whitened, suspect, (self.lever, self.rear_slip_gain, self.antenna_x))
 
     def _keep_updates(self, sample: Sample) -> None:

@@ -41,6 +41,14 @@ from transplanter_ident.ekf.layout import (
     StepStatus,
 )
 from transplanter_ident.epochs.epoch import EpochArrays
+from transplanter_ident.evaluation.epoch_checks import (
+    change_suspected,
+    consistency_nis,
+    noisier,
+    pinned,
+    relative_stds,
+    unconverged,
+)
 from transplanter_ident.evaluation.hysteresis import hysteresis_step, initial_state
 from transplanter_ident.evaluation.model_errors import MODEL_ERRORS
 from transplanter_ident.evaluation.window_checks import (
@@ -52,21 +60,6 @@ from transplanter_ident.evaluation.window_checks import (
     window_limits,
 )
 from transplanter_ident.jit import entry_kernel
-
-
-def noise_factor(outputs: np.ndarray) -> np.ndarray:
-    """The larger factor on R (variance) the innovations show, velocity's or heading's (ekf.noise_adaptation), per row."""
-    return np.maximum(outputs[..., O_NOISE_SCALE_VY], outputs[..., O_NOISE_SCALE_SECOND])
-
-
-def consistency_nis(factor: np.ndarray | float, measured: np.ndarray | float, configured: np.ndarray | float,
-                    max_noise_factor: float) -> np.ndarray:
-    """The NIS the consistency test takes (the monitor's per sample, the batch's per row).
-
-    Against R as the innovations show it (layout.O_NIS, ``measured``) where the noise ``factor`` is within
-    ``max_noise_factor``, else against the configured R (O_NIS_CONFIGURED, ``configured``).
-    """
-    return np.where(np.asarray(factor) <= max_noise_factor, measured, configured)
 
 
 def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever: float, recheck: float,
@@ -96,21 +89,19 @@ def decide_batch(settings: ValiditySettings, bounds: tuple[float, float], lever:
     if len(suspect) != n:
         return None
     cf, cr, cf_std, cr_std = (outputs[:, i] for i in (O_CF, O_CR, O_CF_STD, O_CR_STD))
-    low, high = bounds
     with np.errstate(divide="ignore", invalid="ignore"):
-        hard = (cf <= low * 1.01) | (cf >= high / 1.01) | (cr <= low * 1.01) | (cr >= high / 1.01)
-        front, rear = cf_std / cf, cr_std / cr
-        worst = np.where(rear > front, rear, front)  # max(front, rear), NaN as Python's max treats it
-        soft = ~predicted | ~(worst <= settings.max_rel_std) | setup
+        hard = pinned(cf, bounds) | pinned(cr, bounds)
+        front, rear, worst = relative_stds(cf, cr, cf_std, cr_std)
+        soft = ~predicted | unconverged(worst, settings) | setup
         for error in MODEL_ERRORS:  # a GNSS delay, a relaxation length, a steering gain left out (model_errors.py)
             soft |= error.fails(outputs, front, rear, settings)
-        soft |= noise_factor(outputs) > settings.max_noise_factor
-        soft |= outputs[:, O_CHANGE_EVIDENCE] > settings.max_change_evidence
+        soft |= noisier(outputs[:, O_NOISE_SCALE_VY], outputs[:, O_NOISE_SCALE_SECOND], settings)
+        soft |= change_suspected(outputs[:, O_CHANGE_EVIDENCE], settings)
         s00 = outputs[:, O_S00]
         whitened = np.divide(outputs[:, O_E0], np.sqrt(np.where(s00 > 0.0, s00, 1.0)), where=s00 > 0.0,
                              out=np.zeros(n))
-    nis = consistency_nis(noise_factor(outputs), outputs[:, O_NIS], outputs[:, O_NIS_CONFIGURED],
-                          settings.max_noise_factor)
+    nis = consistency_nis(outputs[:, O_NOISE_SCALE_VY], outputs[:, O_NOISE_SCALE_SECOND], outputs[:, O_NIS],
+                          outputs[:, O_NIS_CONFIGURED], settings)
     columns = window_columns(t, status, np.ascontiguousarray(epochs.speed, dtype=np.float64),
                              np.ascontiguousarray(epochs.antenna_lateral_velocity, dtype=np.float64),
                              np.ascontiguousarray(epochs.yaw_rate, dtype=np.float64), epochs.steering, cr, nis,

@@ -112,7 +112,7 @@ def window_columns(t: np.ndarray, status: np.ndarray, speed: np.ndarray, vy: np.
                    geometry: tuple[float, float, float]) -> WindowColumns:
     """The window checks' terms of n epochs (all arrays (n,), ``status`` int64 StepStatus codes, all valid).
 
-    ``nis``: the NIS the consistency test takes (validity_batch.consistency_nis); ``whitened``: the vy
+    ``nis``: the NIS the consistency test takes (epoch_checks.consistency_nis); ``whitened``: the vy
     innovation over its std (0 where it has none); ``suspect``: after a rejected sample, or distrusted;
     ``geometry``: (lr + antenna_x, m lf / (2 (lf + lr)), antenna_x). Python's ``math`` where the
     terms are scalar functions (atan2, remainder, squares), so any caller gets the same bits.
