@@ -58,6 +58,12 @@ ROWS: dict[str, dict[str, object]] = {
     "1 m/s, 10 min": {"speed": 1.0, "duration": 600.0},
     "1.2 m/s, 180 s": {"speed": 1.2, "duration": 180.0},
     "1.5 m/s, 180 s": {"speed": 1.5, "duration": 180.0},
+    "speed 1.5-2.5 m/s (a 20 s sine)": {"speed_profile": lambda t: 2.0 + 0.5 * np.sin(2.0 * np.pi * t / 20.0)},
+    "speed 1-3 m/s (a 30 s sine), 180 s": {"speed_profile": lambda t: 2.0 + np.sin(2.0 * np.pi * t / 30.0),
+                                            "duration": 180.0},
+    "2 m/s slowing to 0.2 m/s for 10 s every 40 s, 180 s": {  # the simulator cannot stop (eq. 3 at vx = 0)
+        "speed_profile": lambda t: 0.2 + 1.8 * np.clip((30.0 - np.mod(t, 40.0)) / 2.0, 0.0, 1.0)
+        * np.clip(np.mod(t, 40.0) / 2.0, 0.0, 1.0), "duration": 180.0},
     "sine +-5 deg": {"steering": sine_steering(DEG(5.0), 6.0)},
     "sine +-25 deg": {"steering": sine_steering(DEG(25.0), 6.0)},
     "sine period 3 s": {"steering": sine_steering(DEG(15.0), 3.0)},
