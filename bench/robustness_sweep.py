@@ -26,7 +26,16 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 
-from drives import LATE_DROP, NOISY_GNSS, NOISY_GNSS_R, drift, run_drive, sine_drive, step_change  # noqa: E402
+from drives import (  # noqa: E402
+    LATE_DROP,
+    NOISY_GNSS,
+    NOISY_GNSS_R,
+    drift,
+    run_drive,
+    sine_drive,
+    step_change,
+    with_body_roll,
+)
 from independent_sim import independent_drive  # noqa: E402
 from test_validity import epochs_of  # noqa: E402
 
@@ -143,6 +152,10 @@ ROWS: dict[str, dict[str, object]] = {
                                                                 "filter_vehicle": VehicleParams(relaxation_length=0.32)},
     "tire relaxation 0.6 m, vehicle.relaxation_length set": {"relaxation_length": 0.6,
                                                              "filter_vehicle": VehicleParams(relaxation_length=0.6)},
+    "body roll 0.25 deg per m/s^2, antenna 1.5 m up": {"body_roll": (DEG(0.25), 1.5)},
+    "body roll 0.5 deg per m/s^2, antenna 1.5 m up": {"body_roll": (DEG(0.5), 1.5)},
+    "body roll 1 deg per m/s^2, antenna 1.5 m up": {"body_roll": (DEG(1.0), 1.5)},
+    "body roll 0.5 deg per m/s^2, antenna 1.5 m up, 1.5 m/s": {"body_roll": (DEG(0.5), 1.5), "speed": 1.5},
     "side slope 2 deg": {"bank_angle": DEG(2.0)},
     "side slope 5 deg": {"bank_angle": DEG(5.0)},
     "heavier, longer vehicle": {"vehicle": VehicleParams(mass=1400.0, lf=0.9, lr=0.6)},
@@ -180,10 +193,12 @@ def drive(name: str, seed: int) -> tuple[SimResult, VehicleParams]:
     overrides = dict(ALL_ROWS[name])
     told = overrides.pop("filter_vehicle", None)  # the estimator configured with other vehicle constants
     overrides.pop("filter_noise", None)  # the estimator's Q/R (row_figures)
+    roll = overrides.pop("body_roll", None)  # (gain rad per m/s^2, antenna height m): drives.with_body_roll
     if name in INDEPENDENT_ROWS:
         return independent_drive(seed, **overrides), told or VehicleParams()
     sim = sine_drive(seed, **overrides)
-    return simulate(sim), told or sim.vehicle
+    result = simulate(sim)
+    return (with_body_roll(result, *roll) if roll else result), told or sim.vehicle
 
 
 def with_stiffness_noise(noise: NoiseParams, factor: float) -> NoiseParams:

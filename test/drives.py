@@ -50,6 +50,21 @@ def drift(change: float, start: float, end: float) -> StiffnessSchedule:
                              rear=(TRUE_CR, (1.0 + change) * TRUE_CR), transition=end - start)
 
 
+def with_body_roll(result: SimResult, gain: float, height: float) -> SimResult:
+    """``result`` with the body rolling outward in turns, gain rad per m/s^2 of lateral acceleration (quasi-static).
+
+    The model has no roll: an antenna ``height`` m above the roll axis moves sideways at -height x the roll
+    rate, gain x d(a_y)/dt with a_y = dvy/dt + vx r at the CG (finite differences of the truth at the GNSS
+    samples), added to the antenna's measured velocity. The heading (a dual antenna along x) stays.
+    """
+    t = result.gnss_time
+    lateral_acceleration = np.gradient(result.truth_vy, t) + result.truth_vx * result.truth_yaw_rate
+    sideways = -height * gain * np.gradient(lateral_acceleration, t)
+    psi = result.truth_heading
+    velocity = result.velocity_enu + np.column_stack((-np.sin(psi) * sideways, np.cos(psi) * sideways))
+    return replace(result, velocity_enu=velocity)
+
+
 #: GNSS velocity and heading 2x noisier than the default, and the R that describes them (a tuned noisier receiver)
 NOISY_GNSS = SensorNoise(velocity=2.0 * SensorNoise().velocity, heading=2.0 * SensorNoise().heading)
 NOISY_GNSS_R = NoiseParams(measurement_noise=tuple(4.0 * r for r in NoiseParams().measurement_noise))
