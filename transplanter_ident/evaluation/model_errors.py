@@ -105,14 +105,15 @@ class ModelError:
 MODEL_ERRORS = (
     ModelError("delay", (O_DELAY_ESTIMATE, O_DELAY_ESTIMATE_STD, O_DELAY_SENS_F, O_DELAY_SENS_R), False,
                lambda v, s: f"a GNSS delay of {1e3 * v:+.0f} +- {1e3 * s:.0f} ms not in gnss.delay (the stiffness "
-                            "moves ~2 % per ms)", "set gnss.delay, or tuner --estimate-delay"),
+                            "moves ~2 % per ms; or a high antenna on a body that rolls in turns, which looks alike)",
+               "set gnss.delay, or tuner --estimate-delay"),
     ModelError("relaxation", (O_RELAXATION, O_RELAXATION_STD, O_RELAXATION_SENS_F, O_RELAXATION_SENS_R), True,
                lambda v, s: f"the tire force lagging the slip over {v:.2f} +- {s:.2f} m of travel more than "
-                            "vehicle.relaxation_length", "set vehicle.relaxation_length (the tire's relaxation length, "
+                            "vehicle.relaxation_length (or a high antenna on a body that rolls, which looks alike)", "set vehicle.relaxation_length (the tire's relaxation length, "
                "of the order of its radius), or tuner --estimate-relaxation-length"),
     ModelError("steering_gain", (O_SCALE_ESTIMATE, O_SCALE_ESTIMATE_STD, O_SCALE_SENS_F, O_SCALE_SENS_R), False,
                lambda v, s: f"a steering gain {100 * v:+.1f} +- {100 * s:.1f} % off vehicle.steering_scale, or a yaw "
-                            "inertia off vehicle.iz (the two look alike)",
+                            "inertia off vehicle.iz (the two look alike, as does a high antenna on a body that rolls)",
                "check vehicle.steering_scale and vehicle.iz, or tuner --estimate-steering-scale --estimate-yaw-inertia"),
     ModelError("heading", (O_HEADING_ESTIMATE, O_HEADING_ESTIMATE_STD, O_HEADING_SENS_F, O_HEADING_SENS_R), False,
                lambda v, s: f"a heading {math.degrees(v):+.2f} +- {math.degrees(s):.2f} deg off the vehicle's axis "
