@@ -156,6 +156,17 @@ ROWS: dict[str, dict[str, object]] = {
     "body roll 0.5 deg per m/s^2, antenna 1.5 m up": {"body_roll": (DEG(0.5), 1.5)},
     "body roll 1 deg per m/s^2, antenna 1.5 m up": {"body_roll": (DEG(1.0), 1.5)},
     "body roll 0.5 deg per m/s^2, antenna 1.5 m up, 1.5 m/s": {"body_roll": (DEG(0.5), 1.5), "speed": 1.5},
+    "body roll 0.25 deg per m/s^2, antenna 1.5 m up, set": {
+        "body_roll": (DEG(0.25), 1.5), "filter_vehicle": VehicleParams(antenna_height=1.5, roll_gradient=DEG(0.25))},
+    "body roll 0.5 deg per m/s^2, antenna 1.5 m up, set": {
+        "body_roll": (DEG(0.5), 1.5), "filter_vehicle": VehicleParams(antenna_height=1.5, roll_gradient=DEG(0.5))},
+    "body roll 1 deg per m/s^2, antenna 1.5 m up, set": {
+        "body_roll": (DEG(1.0), 1.5), "filter_vehicle": VehicleParams(antenna_height=1.5, roll_gradient=DEG(1.0))},
+    "body roll 0.5 deg per m/s^2, antenna 1.5 m up, set 20 % low": {
+        "body_roll": (DEG(0.5), 1.5), "filter_vehicle": VehicleParams(antenna_height=1.5, roll_gradient=DEG(0.4))},
+    "body roll 0.5 deg per m/s^2, antenna 1.5 m up, 1.5 m/s, set": {
+        "body_roll": (DEG(0.5), 1.5), "speed": 1.5,
+        "filter_vehicle": VehicleParams(antenna_height=1.5, roll_gradient=DEG(0.5))},
     "side slope 2 deg": {"bank_angle": DEG(2.0)},
     "side slope 5 deg": {"bank_angle": DEG(5.0)},
     "heavier, longer vehicle": {"vehicle": VehicleParams(mass=1400.0, lf=0.9, lr=0.6)},

@@ -37,6 +37,8 @@ class VehicleParams:
     track_width: float = 0.0  # m, front track: turns one wheel's angle into the single-track one (Ackermann)
     relaxation_length: float = 0.0  # m: each axle's force builds over this travel (0: at once, eq. 4)
     heading_offset: float = 0.0  # rad: yaw of the GNSS heading source relative to the vehicle x axis
+    antenna_height: float = 0.0  # m, the GNSS antenna above the body's roll axis
+    roll_gradient: float = 0.0  # rad of body roll (outward) per m/s^2 of lateral acceleration (0: no roll)
     max_speed: float = 5.0  # m/s: a GNSS speed beyond it is rejected
     max_lateral_speed: float = 1.0  # m/s: an epoch with |vy| at the CG beyond it is rejected
     max_yaw_rate: float = 1.5  # rad/s: an epoch with |r| beyond it is rejected
@@ -45,11 +47,17 @@ class VehicleParams:
     def __post_init__(self) -> None:
         check_fields(self, "vehicle", positive=("mass", "lf", "lr", "max_steering", "max_speed", "max_lateral_speed",
                                                 "max_yaw_rate", "max_steering_rate", "steering_scale"),
-                     finite=("iz", "antenna_x", "antenna_y", "steering_offset", "heading_offset", "steering_play"),
-                     non_negative=("track_width", "relaxation_length"))
+                     finite=("iz", "antenna_x", "antenna_y", "steering_offset", "heading_offset", "steering_play",
+                             "roll_gradient"),
+                     non_negative=("track_width", "relaxation_length", "antenna_height"))
         _check_choice("vehicle.steering_sensor_wheel", self.steering_sensor_wheel, STEERING_SENSOR_WHEELS)
         if self.steering_sensor_wheel != "center" and not self.track_width > 0.0:
             raise ValueError("vehicle.track_width must be positive for a steering sensor on one wheel")
+
+    @property
+    def roll_lever(self) -> float:
+        """s^2: the antenna's sideways travel per m/s^2 of lateral acceleration (antenna_height x roll_gradient)."""
+        return self.antenna_height * self.roll_gradient
 
     @property
     def yaw_inertia(self) -> float:

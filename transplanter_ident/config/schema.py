@@ -103,6 +103,13 @@ SCHEMA: tuple[Param, ...] = (
            "counter-clockwise (subtracted from the heading): e.g. +1.5708 for a dual-antenna baseline pointing to "
            "the left; for one nav_msgs/Odometry topic serving velocity and heading it turns the twist too",
            -math.pi, math.pi),
+    _float("vehicle.antenna_height", 0.0, "m", "height of the GNSS antenna (the velocity's point) above the body's "
+           "roll axis: with vehicle.roll_gradient, the body's roll in turns moves it sideways, which the filter then "
+           "predicts (docs/robustness.md, Body roll)", 0.0, 10.0),
+    _float("vehicle.roll_gradient", 0.0, "rad s^2/m", "the body's roll, outward, per m/s^2 of lateral acceleration "
+           "(a tilt or steady-turn test; 0: no roll). Left out with a high antenna (0.25 deg per m/s^2 at 1.5 m), the "
+           "estimate is seldom valid and the reasons name a GNSS delay, a steering gain or a tire relaxation that are "
+           "not there", -0.2, 0.2),
     # the vehicle's physical limits: samples beyond them are rejected and counted (issue #14)
     _float("vehicle.max_speed", 5.0, "m/s", "GNSS ground speed beyond which a velocity sample is rejected "
            "(a rice transplanter travels below about 4 m/s on the road)", 0.1, 100.0),

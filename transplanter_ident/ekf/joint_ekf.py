@@ -76,6 +76,7 @@ from transplanter_ident.ekf.layout import (
     S_PLAY_UNCERTAINTY,
     S_R_FROM_COVARIANCE,
     S_RELAXATION_UNCERTAINTY,
+    S_ROLL_LEVER,
     S_SATURATION_CORRECTION,
     S_SATURATION_MEMORY,
     S_SATURATION_PRIOR,
@@ -133,6 +134,7 @@ class FilterArrays:
         settings[S_P0_R] = noise.initial_covariance[1]
         settings[S_P0_PSI] = noise.initial_heading_covariance
         settings[S_ANTENNA_X] = config.vehicle.antenna_x
+        settings[S_ROLL_LEVER] = config.vehicle.roll_lever
         settings[S_MAX_SLIP] = options.max_slip_angle
         settings[S_MAX_LAT_ACC] = options.max_lateral_acceleration
         settings[S_MAX_UTILISATION] = options.max_tire_utilisation

@@ -98,12 +98,15 @@ from transplanter_ident.ekf.layout import (
     S_P0_HEADING_OFFSET,
     S_PLAY_UNCERTAINTY,
     S_RELAXATION_UNCERTAINTY,
+    S_ROLL_LEVER,
     S_SCALE_UNCERTAINTY,
     S_SPEED_NOISE,
     V_BACKUP_CHANGE,
     V_BACKUP_MODEL,
     V_BACKUP_X,
     VEH_COURSE,
+    VEH_LF,
+    VEH_LR,
     VEH_RELAXATION,
     W_BACKUP_P,
     W_VEC,
@@ -120,6 +123,7 @@ from transplanter_ident.ekf.measurement_row import (
     body_speed,
     course_variance,
     predict_vy,
+    roll_velocity,
     second_innovation,
     vy_row_quadratic,
     vy_row_times_column,
@@ -288,6 +292,8 @@ def make_kernels(heading, lagged=False):
 
         # 4.
         e0 = vy_antenna - predict_vy(ws, n, x, settings[S_ANTENNA_X], speed, course)  # ~ vy + ax r - vx h, and H[0]
+        if settings[S_ROLL_LEVER] != 0.0 and not course:  # the body's roll moving the antenna sideways
+            e0 -= roll_velocity(settings[S_ROLL_LEVER], speed, steering_rate, vehicle[VEH_LF] + vehicle[VEH_LR])
         e1 = second_innovation(x, heading, course, psi, yaw_rate, vehicle, vx)
         hph00 = vy_row_quadratic(ws, n, p)
         hph11 = p[h1, h1]

@@ -69,7 +69,8 @@ S_NOISE_CORRELATION = 43
 S_CHANGE_OFFSET_Q = 44
 S_P0_HEADING_OFFSET = 45  # rad^2: P0 of the heading's misalignment h (0: not estimated, recovery.py re-initialises to it)
 S_PLAY_UNCERTAINTY = 46  # rad, 1-sigma of the steering play left out of vehicle.steering_play (play_signature.py)
-N_SETTINGS = 47
+S_ROLL_LEVER = 47  # s^2, the antenna's sideways travel per m/s^2 of lateral acceleration (measurement_row.roll_velocity)
+N_SETTINGS = 48
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6
