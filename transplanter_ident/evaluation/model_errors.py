@@ -109,8 +109,9 @@ MODEL_ERRORS = (
                "set gnss.delay, or tuner --estimate-delay"),
     ModelError("relaxation", (O_RELAXATION, O_RELAXATION_STD, O_RELAXATION_SENS_F, O_RELAXATION_SENS_R), True,
                lambda v, s: f"the tire force lagging the slip over {v:.2f} +- {s:.2f} m of travel more than "
-                            "vehicle.relaxation_length (or a high antenna on a body that rolls, which looks alike)", "set vehicle.relaxation_length (the tire's relaxation length, "
-               "of the order of its radius), or tuner --estimate-relaxation-length"),
+                            "vehicle.relaxation_length (or a high antenna on a body that rolls, which looks alike)",
+               "set vehicle.relaxation_length (the tire's relaxation length, of the order of its radius), or tuner "
+               "--estimate-relaxation-length"),
     ModelError("steering_gain", (O_SCALE_ESTIMATE, O_SCALE_ESTIMATE_STD, O_SCALE_SENS_F, O_SCALE_SENS_R), False,
                lambda v, s: f"a steering gain {100 * v:+.1f} +- {100 * s:.1f} % off vehicle.steering_scale, or a yaw "
                             "inertia off vehicle.iz (the two look alike, as does a high antenna on a body that rolls)",

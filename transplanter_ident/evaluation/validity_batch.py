@@ -1,8 +1,8 @@
 """The validity decision of a whole replay at once: :class:`~.validity.ValidityMonitor`'s, bit for bit.
 
 Feeding 72k epochs one by one through the monitor costs about a second of Python. Offline every
-epoch is known, so the per-epoch checks are computed as columns (with the monitor's own
-operations), the window checks' terms with the monitor's :func:`~.window_checks.window_columns`,
+epoch is known, so the per-epoch checks are computed as columns (:mod:`.epoch_checks`' predicates,
+which the monitor takes per epoch), the window checks' terms with the monitor's :func:`~.window_checks.window_columns`,
 and a compiled kernel runs the monitor's sequence: the window bounds, the window checks
 (:mod:`.window_checks`, which the monitor runs too) every RECHECK s, and the hysteresis
 (:mod:`.hysteresis`, the monitor's too). Sequences
