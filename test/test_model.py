@@ -125,23 +125,25 @@ def analytic_jacobian(discretization: str, log_state: bool, x: np.ndarray, vx: f
                       steering: float, steering_rate: float) -> np.ndarray:
     """F built from scipy: expm and its Frechet derivative (exact) or I + M dt (Euler), chain rule for ln C."""
     n = len(x)
-    nd = n - N_PARAMETER_STATES  # motion states, then theta_f, theta_r, the steering offset b and h
+    nd = n - N_PARAMETER_STATES  # motion states, then theta_f, theta_r, the steering offset b, its gain error g, h
     cf, cr = (math.exp(x[nd]), math.exp(x[nd + 1])) if log_state else (x[nd], x[nd + 1])
-    wheel = steering - x[nd + 2]
+    gain = 1.0 + x[nd + 3]  # wheel = (1 + g) sensor - b
     m, dm_f, dm_r = augmented(cf, cr, vx, nd == 3)
     if discretization == "exact":
         e, de_f = scipy.linalg.expm_frechet(m * dt, dm_f * dt)
         de_r = scipy.linalg.expm_frechet(m * dt, dm_r * dt, compute_expm=False)
-        inputs = [wheel - 0.5 * dt * steering_rate, steering_rate]  # the ramp with this mean and slope
+        sensor = [steering - 0.5 * dt * steering_rate, steering_rate]  # the ramp with this mean and slope
     else:
         e, de_f, de_r = np.eye(nd + 2) + m * dt, dm_f * dt, dm_r * dt
-        inputs = [wheel, 0.0]  # eq. (10) holds the interval mean
+        sensor = [steering, 0.0]  # eq. (10) holds the interval mean
+    inputs = [gain * sensor[0] - x[nd + 2], gain * sensor[1]]
     z = np.concatenate([x[:nd], inputs])
     jac = np.eye(n)
     jac[:nd, :nd] = e[:nd, :nd]
     jac[:nd, nd] = (de_f @ z)[:nd] * (cf if log_state else 1.0)
     jac[:nd, nd + 1] = (de_r @ z)[:nd] * (cr if log_state else 1.0)
-    jac[:nd, nd + 2] = -e[:nd, nd]  # wheel = sensor - b
+    jac[:nd, nd + 2] = -e[:nd, nd]  # d wheel / d b
+    jac[:nd, nd + 3] = e[:nd, nd] * sensor[0] + e[:nd, nd + 1] * sensor[1]  # d wheel / d g
     return jac
 
 
@@ -167,17 +169,18 @@ def test_prediction_jacobian_matches_central_differences(discretization, stiffne
         if measurement == "heading":
             motion.append(rng.uniform(-math.pi, math.pi))
         theta = [math.log(cf), math.log(cr)] if log_state else [cf, cr]
-        x = np.array(motion + theta + [rng.uniform(-0.03, 0.03), rng.uniform(-0.05, 0.05)])  # b, h
+        x = np.array(motion + theta + [rng.uniform(-0.03, 0.03), rng.uniform(-0.03, 0.03),
+                                       rng.uniform(-0.05, 0.05)])  # b, g, h
         n, nd = len(x), len(x) - N_PARAMETER_STATES
         where = f"{discretization}/{stiffness}/{measurement} Cf={cf:.0f} Cr={cr:.0f} vx={vx:.2f} dt={dt:.3f}"
         f0, jac, model = run_predict(arrays, x, dt, vx, steering, steering_rate)
         assert np.all(np.isfinite(f0)) and np.all(np.isfinite(jac))
         # the open-loop model goes through the same transition
         np.testing.assert_array_equal(model[:nd], f0[:nd])
-        # the stiffness, the offset and h are random walks
+        # the stiffness, the offset, its gain error and h are random walks
         np.testing.assert_array_equal(f0[nd:], x[nd:])
         for j in range(n):
-            if j >= n - 2:  # b, h
+            if j >= n - 3:  # b, g, h
                 step = 1e-6
             elif j >= nd:
                 step = 1e-6 if log_state else 1e-6 * abs(x[j])
@@ -201,10 +204,10 @@ def test_prediction_jacobian_matches_central_differences(discretization, stiffne
 def test_jacobian_stiffness_columns_are_not_trivial():
     """Guard against a vacuous finite-difference test: the stiffness columns carry real sensitivity."""
     arrays = settings_for("exact", "log", "heading")
-    x = np.array([0.05, 0.1, 0.3, math.log(8000.0), math.log(10000.0), 0.01, 0.02])
+    x = np.array([0.05, 0.1, 0.3, math.log(8000.0), math.log(10000.0), 0.01, 0.005, 0.02])
     _, jac, _ = run_predict(arrays, x, 0.2, 2.0, 0.2, 0.3)
-    assert np.all(np.abs(jac[:3, 3:6]) > 1e-4)  # theta_f, theta_r, b
-    assert np.all(jac[:3, 6] == 0.0)  # h is in the vy measurement only
+    assert np.all(np.abs(jac[:3, 3:7]) > 1e-4)  # theta_f, theta_r, b, g
+    assert np.all(jac[:3, 7] == 0.0)  # h is in the vy measurement only
 
 
 # --------------------------------------------------------------------------- exact discretisation
@@ -358,7 +361,7 @@ def test_exact_prediction_follows_a_steering_ramp(measurement):
 
         reference = solve_ivp(rhs, (0.0, dt), motion0, method="DOP853", rtol=1e-13, atol=1e-15).y[:, -1]
         nd = 3 if measurement == "heading" else 2
-        x = np.concatenate([motion0[:nd], [cf, cr, 0.0, 0.0]])
+        x = np.concatenate([motion0[:nd], [cf, cr], np.zeros(N_PARAMETER_STATES - 2)])  # b, g, h 0
         mean = start + 0.5 * slope * dt  # what the assembler's interval_line reports for a ramp
         got, _, _ = run_predict(arrays, x, dt, vx, mean, slope)
         scale = np.max(np.abs(reference[:nd]))

@@ -12,7 +12,7 @@ from transplanter_ident.config.parameters import FilterOptions, NoiseParams
 
 PAPER_OPTIONS = FilterOptions(discretization="euler", stiffness_state="linear", measurement="yaw_rate",
                               process_noise_units="per_step", estimate_steering_offset=False,
-                              estimate_heading_offset=False,
+                              estimate_heading_offset=False, estimate_steering_gain=False,
                               linear_range_check=False, change_detection=False, noise_adaptation=False,
                               noise_correlation=False, speed_noise=False,
                               relinearization_window=0.0)

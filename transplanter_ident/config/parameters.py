@@ -78,6 +78,7 @@ class FilterOptions:
     max_gated: int = 5  # this many consecutive gated epochs re-initialise the motion states
     max_interval: float = 2.0  # s; a longer gap re-initialises the motion states
     estimate_steering_offset: bool = True  # the steering-sensor offset as a filter state
+    estimate_steering_gain: bool = False  # the steering gain's error left out of vehicle.steering_scale, a state
     estimate_heading_offset: bool = True  # the heading's misalignment left out of vehicle.heading_offset, a state
     process_noise_units: str = "per_second"  # Q as a spectral density, or per GNSS step (old files)
     process_noise_step: float = 0.2  # s: the GNSS interval per-step Q values were tuned for
@@ -188,6 +189,8 @@ class NoiseParams:
     heading_process_noise: Q density of the heading state (heading mode only), rad^2/s.
     steering_offset_process_noise: Q density of the steering offset, rad^2/s.
     steering_offset_initial_variance: P0 of the steering offset, rad^2 (0 when it is not estimated).
+    steering_gain_process_noise: Q density of the steering gain's relative error g (wheel = (1 + g) sensor - b), 1/s.
+    steering_gain_initial_variance: its P0 (0 when it is not estimated).
     heading_offset_process_noise: Q density of the heading's misalignment left out of vehicle.heading_offset, rad^2/s.
     heading_offset_initial_variance: its P0, rad^2 (0 when it is not estimated).
     """
@@ -197,6 +200,8 @@ class NoiseParams:
     heading_process_noise: float = 1.0e-8
     steering_offset_process_noise: float = 1.0e-8
     steering_offset_initial_variance: float = 1.2e-3
+    steering_gain_process_noise: float = 1.0e-9
+    steering_gain_initial_variance: float = 4.0e-4
     heading_offset_process_noise: float = 1.0e-8
     heading_offset_initial_variance: float = 1.2e-3
     initial_stiffness: tuple[float, float] = (1000.0, 1000.0)
@@ -213,6 +218,9 @@ class NoiseParams:
         _check_vector("ekf.steering_offset_process_noise", (self.steering_offset_process_noise,), 1,
                       allow_zero=True)
         _check_vector("ekf.steering_offset_initial_variance", (self.steering_offset_initial_variance,), 1,
+                      allow_zero=True)
+        _check_vector("ekf.steering_gain_process_noise", (self.steering_gain_process_noise,), 1, allow_zero=True)
+        _check_vector("ekf.steering_gain_initial_variance", (self.steering_gain_initial_variance,), 1,
                       allow_zero=True)
         _check_vector("ekf.heading_offset_process_noise", (self.heading_offset_process_noise,), 1, allow_zero=True)
         _check_vector("ekf.heading_offset_initial_variance", (self.heading_offset_initial_variance,), 1,

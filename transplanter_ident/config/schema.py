@@ -182,6 +182,12 @@ SCHEMA: tuple[Param, ...] = (
            0.0, MAX_NOISE, read_only=False),
     _float("ekf.steering_offset_initial_variance", 1.2e-3, "rad^2", "P0 of the steering offset (2 deg 1-sigma; "
            "used from the next ~/reset)", 0.0, 1.0, read_only=False),
+    _bool("ekf.estimate_steering_gain", False, "estimate the steering sensor's gain error g left out of "
+          "vehicle.steering_scale as a filter state (wheel angle = (1 + g) sensor - offset)"),
+    _float("ekf.steering_gain_process_noise", 1.0e-9, "1/s", "Q density of the steering gain's error",
+           0.0, MAX_NOISE, read_only=False),
+    _float("ekf.steering_gain_initial_variance", 4.0e-4, "1", "P0 of the steering gain's error (2 % 1-sigma; "
+           "used from the next ~/reset)", 0.0, 1.0, read_only=False),
     _bool("ekf.estimate_heading_offset", True, "estimate the heading's misalignment with the vehicle's x axis left "
           "out of vehicle.heading_offset as a filter state (the vy measurement is vy + antenna_x r - vx h)"),
     _float("ekf.heading_offset_process_noise", 1.0e-8, "rad^2/s", "Q density of the heading's misalignment",

@@ -51,6 +51,8 @@ from transplanter_ident.ekf.layout import (
     O_SCALE_SENS_F,
     O_SCALE_SENS_R,
     O_STATUS,
+    O_STEERING_GAIN,
+    O_STEERING_GAIN_STD,
     O_TIRE_BIAS_F,
     O_TIRE_BIAS_R,
     O_VY,
@@ -120,8 +122,12 @@ class Estimate:
 
     @property
     def steering_gain_estimate(self) -> tuple[float, float]:
-        """(relative, std) of the steering gain left out of vehicle.steering_scale (or Iz's look-alike; std 0: not yet)."""
-        return self._pair(O_SCALE_ESTIMATE, O_SCALE_ESTIMATE_STD, 0.0)
+        """(relative, std) of the steering gain left out of vehicle.steering_scale (or Iz's look-alike; std 0: not yet).
+
+        The filter's state g while ``ekf.estimate_steering_gain``, else the innovations' measure of it.
+        """
+        state = self._pair(O_STEERING_GAIN, O_STEERING_GAIN_STD, 0.0)
+        return state if state[1] > 0.0 else self._pair(O_SCALE_ESTIMATE, O_SCALE_ESTIMATE_STD, 0.0)
 
     @property
     def steering_play_estimate(self) -> tuple[float, float]:

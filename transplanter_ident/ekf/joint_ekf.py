@@ -70,6 +70,7 @@ from transplanter_ident.ekf.layout import (
     S_P0_OFFSET,
     S_P0_PSI,
     S_P0_R,
+    S_P0_STEERING_GAIN,
     S_P0_THETA_F,
     S_P0_THETA_R,
     S_P0_VY,
@@ -87,6 +88,7 @@ from transplanter_ident.ekf.layout import (
     X_HEADING_OFFSET,
     X_OFFSET,
     X_PSI,
+    X_STEERING_GAIN,
     X_THETA_F,
     X_THETA_R,
 )
@@ -168,6 +170,7 @@ class FilterArrays:
         q, p0 = _state_diagonals(noise, options, config.vehicle.relaxation_length > 0.0)
         settings[S_P0_THETA_F], settings[S_P0_THETA_R] = p0[X_THETA_F], p0[X_THETA_R]  # recovery.py
         settings[S_P0_OFFSET], settings[S_P0_HEADING_OFFSET] = p0[X_OFFSET], p0[X_HEADING_OFFSET]
+        settings[S_P0_STEERING_GAIN] = p0[X_STEERING_GAIN]
         x0 = np.zeros(len(q))
         x0[X_THETA_F] = to_state(noise.initial_stiffness[0])
         x0[X_THETA_R] = to_state(noise.initial_stiffness[1])
@@ -183,7 +186,7 @@ class FilterArrays:
 
 
 def _state_diagonals(noise: NoiseParams, options: FilterOptions, lagged: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Diag Q (a density, per second) and diag P0 in the state's order; a fixed offset (b or h) has Q = P0 = 0.
+    """Diag Q (a density, per second) and diag P0 in the state's order; a fixed offset or gain (b, g or h) has Q = P0 = 0.
 
     ``lagged`` (relaxing tires): the slip lags follow the motion states with Q = P0 = 0 (they start at
     0, a steady turn, and follow vy, r and the steering deterministically).
@@ -198,6 +201,9 @@ def _state_diagonals(noise: NoiseParams, options: FilterOptions, lagged: bool) -
     estimated = options.estimate_steering_offset
     q.append(noise.steering_offset_process_noise if estimated else 0.0)
     p0.append(noise.steering_offset_initial_variance if estimated else 0.0)
+    estimated = options.estimate_steering_gain
+    q.append(noise.steering_gain_process_noise if estimated else 0.0)
+    p0.append(noise.steering_gain_initial_variance if estimated else 0.0)
     estimated = options.heading_offset_estimated
     q.append(noise.heading_offset_process_noise if estimated else 0.0)
     p0.append(noise.heading_offset_initial_variance if estimated else 0.0)

@@ -158,7 +158,7 @@ def make_kernels(heading, lagged=False):
     lag = N_LAG if lagged else 0
     n = (HEADING_STATES if heading else YAW_RATE_STATES) + lag
     nd = (N_MOTION_HEADING if heading else N_MOTION_YAW_RATE) + lag  # motion states and slip lags
-    nf, nr, nb = nd, nd + 1, nd + 2  # theta_f, theta_r, steering offset (then h, the heading's misalignment)
+    nf, nr, nb, ng = nd, nd + 1, nd + 2, nd + 3  # theta_f, theta_r, steering offset and gain error (then h)
     h1 = X_PSI if heading else X_R  # second measured state
     propagate_covariance, add_speed_noise, joseph_update, keep_speed_cross = make_update(n, nd, h1)
 
@@ -250,7 +250,7 @@ def make_kernels(heading, lagged=False):
 
         # the tire's range from the last motion estimate, once both stiffnesses are known (see adaptation.py)
         log_state = settings[S_LOG] > 0.5
-        wheel = steering - 0.5 * dt * steering_rate  # at the interval's start, as x (the ramp of predict_n)
+        wheel = (1.0 + x[ng]) * (steering - 0.5 * dt * steering_rate)  # at the interval's start, as x (predict_n)
         beyond = beyond_linear_range(vehicle, settings, vx, wheel, x[nb], x[X_VY], x[X_R],
                                      stiffness(x, settings, 0)[0], stiffness(x, settings, 1)[0], out)
         known = known_to(x[nf], p[nf, nf], log_state) and known_to(x[nr], p[nr, nr], log_state)
@@ -259,7 +259,9 @@ def make_kernels(heading, lagged=False):
             memo[M_LAG_ACTIVE] = 1.0
         # an estimated h is held (Schmidt), and vy's R not learnt, until both stiffnesses are known (or DELAY_SETTLE s
         # of data): a model far off its priors makes vy errors that are neither h nor noise (and h is no noise)
-        heading_held = settings[S_P0_HEADING_OFFSET] > 0.0 and not known and memo[M_DELAY_SETTLED] < DELAY_SETTLE
+        starting = not known and memo[M_DELAY_SETTLED] < DELAY_SETTLE
+        heading_held = settings[S_P0_HEADING_OFFSET] > 0.0 and starting
+        gain_held = starting  # likewise the steering gain's error g
 
         # 3.
         psi_model_before = model[X_PSI]
@@ -325,7 +327,7 @@ def make_kernels(heading, lagged=False):
             if nonlinear:
                 status = StepStatus.NONLINEAR
             theta_f, theta_r, prior_f, prior_r = x[nf], x[nr], p[nf, nf], p[nr, nr]
-            joseph_update(x, p, e0, e1, s00, s01, s11, det, nonlinear, heading_held, ws)
+            joseph_update(x, p, e0, e1, s00, s01, s11, det, nonlinear, heading_held, gain_held, ws)
             if not nonlinear and settings[S_CHANGE_DETECTION] > 0.5:  # gated outliers never raise an alarm
                 u_f = normalised_update(theta_f, x[nf], prior_f, p[nf, nf])
                 u_r = normalised_update(theta_r, x[nr], prior_r, p[nr, nr])

@@ -3,14 +3,15 @@
 The kernels of :mod:`.model` and :mod:`.kernels` work on flat float arrays; this module names
 their slots so that no kernel writes a bare number:
 
-* state x (n,): [vy, r, psi, theta_f, theta_r, b, h] in ``heading`` mode (z = [vy_antenna, psi]; in ``course``
+* state x (n,): [vy, r, psi, theta_f, theta_r, b, g, h] in ``heading`` mode (z = [vy_antenna, psi]; in ``course``
   mode, a single antenna, psi is the antenna's course over ground and z its measurement alone) or
-  [vy, r, theta_f, theta_r, b, h] in ``yaw_rate`` mode (the paper's eq. 11 plus b and h, z = [vy_antenna, r]);
-  theta = ln C (``log``) or C (``linear``), b the steering-sensor offset (wheel = sensor - b), h the
+  [vy, r, theta_f, theta_r, b, g, h] in ``yaw_rate`` mode (the paper's eq. 11 plus b, g and h, z = [vy_antenna, r]);
+  theta = ln C (``log``) or C (``linear``), b the steering-sensor offset and g the relative error of its
+  gain left out of ``vehicle.steering_scale`` (wheel = (1 + g) sensor - b), h the
   heading's misalignment left out of ``vehicle.heading_offset`` (the vy measurement is vy + antenna_x r
   - vx h, :mod:`.update`). With a tire relaxation length (``vehicle.relaxation_length`` > 0) the slip
   lags of the two axles, d_f and d_r (the force is C (alpha - d)), follow the motion states:
-  [vy, r, (psi), d_f, d_r, theta_f, theta_r, b, h];
+  [vy, r, (psi), d_f, d_r, theta_f, theta_r, b, g, h];
 * settings (N_SETTINGS,): the filter options as numbers (``S_*``);
 * outputs (N_OUTPUTS,): one row per epoch (``O_*``);
 * memo (N_MEMO,): what the step remembers between epochs (``M_*``);
@@ -26,15 +27,16 @@ from __future__ import annotations
 
 import enum
 
-# state: the motion states first, then the two stiffness states, the steering offset and the heading's misalignment
+# state: the motion states first, then the two stiffness states, the steering offset and gain error, and the
+# heading's misalignment
 X_VY, X_R, X_PSI = 0, 1, 2
-HEADING_STATES, YAW_RATE_STATES = 7, 6  # [vy, r, psi, th_f, th_r, b, h] and [vy, r, th_f, th_r, b, h]
+HEADING_STATES, YAW_RATE_STATES = 8, 7  # [vy, r, psi, th_f, th_r, b, g, h] and [vy, r, th_f, th_r, b, g, h]
 N_MOTION_HEADING, N_MOTION_YAW_RATE = 3, 2
 N_LAG = 2  # the slip lags [d_f, d_r] of a relaxing tire (model.continuous_matrix), after the motion states
 HEADING_LAG_STATES, YAW_RATE_LAG_STATES = HEADING_STATES + N_LAG, YAW_RATE_STATES + N_LAG
 MAX_STATES = HEADING_LAG_STATES
-X_THETA_F, X_THETA_R, X_OFFSET, X_HEADING_OFFSET = -4, -3, -2, -1  # the parameter states, counted from the end
-N_PARAMETER_STATES = 4  # [theta_f, theta_r, b, h], after the motion states and slip lags
+X_THETA_F, X_THETA_R, X_OFFSET, X_STEERING_GAIN, X_HEADING_OFFSET = -5, -4, -3, -2, -1  # counted from the end
+N_PARAMETER_STATES = 5  # [theta_f, theta_r, b, g, h], after the motion states and slip lags
 #: the parameter states a learned state keeps (persistence.py) and a new pass starts from (relinearization.py);
 #: the heading's misalignment is learnt anew in a minute (ekf.estimate_heading_offset)
 PARAMETER_STATES = [X_THETA_F, X_THETA_R, X_OFFSET]
@@ -70,7 +72,8 @@ S_CHANGE_OFFSET_Q = 44
 S_P0_HEADING_OFFSET = 45  # rad^2: P0 of the heading's misalignment h (0: not estimated, recovery.py re-initialises to it)
 S_PLAY_UNCERTAINTY = 46  # rad, 1-sigma of the steering play left out of vehicle.steering_play (play_signature.py)
 S_ROLL_LEVER = 47  # s^2, the antenna's sideways travel per m/s^2 of lateral acceleration (measurement_row.roll_velocity)
-N_SETTINGS = 48
+S_P0_STEERING_GAIN = 48  # P0 of the steering gain's error g (0: not estimated, recovery.py re-initialises to it)
+N_SETTINGS = 49
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6
@@ -105,7 +108,10 @@ O_HEADING_OFFSET, O_HEADING_OFFSET_STD = 52, 53
 #: rad: a steering play left out of vehicle.steering_play as the innovations show it (std 0: none yet), and the
 #: relative error of Cf, Cr per radian of it (play_signature.py)
 O_PLAY_ESTIMATE, O_PLAY_ESTIMATE_STD, O_PLAY_SENS_F, O_PLAY_SENS_R = 54, 55, 56, 57
-N_OUTPUTS = 58
+#: the state g, the steering gain's relative error left out of vehicle.steering_scale (ekf.estimate_steering_gain),
+#: and its std (0, 0: not estimated)
+O_STEERING_GAIN, O_STEERING_GAIN_STD = 58, 59
+N_OUTPUTS = 60
 
 # memo vector
 M_T_PREV, M_INITIALISED, M_GATED, M_CUSUM, M_ADAPT_UNTIL, M_DIVERGED = 0, 1, 2, 3, 4, 5

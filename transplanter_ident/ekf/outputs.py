@@ -3,7 +3,7 @@
 Cf, Cr are the stiffness states (paper eqs. 9-12's parameters, ``stiffness`` maps ln C or C) plus the
 saturating tire's share of its bias (:func:`.adaptation.saturation_share`); their std holds P's
 variance and the biases a configuration may leave out (:func:`.adaptation.held_bias_variance`). Then
-the steering offset b and the heading's misalignment h with their std, the Cf-Cr correlation, the
+the steering offset b, its gain's error g and the heading's misalignment h with their std, the Cf-Cr correlation, the
 model's open-loop vy and r, and the measures of :mod:`.measure_outputs`.
 """
 
@@ -24,6 +24,8 @@ from transplanter_ident.ekf.layout import (
     O_R,
     O_R_MODEL,
     O_STATUS,
+    O_STEERING_GAIN,
+    O_STEERING_GAIN_STD,
     O_TIRE_BIAS_F,
     O_VY,
     O_VY_MODEL,
@@ -37,10 +39,10 @@ from transplanter_ident.jit import called_kernel
 def make_outputs(nd, stiffness):  # noqa: ANN001, ANN201
     """``write_outputs(x, p, memo, settings, status, r_model, vy_model, out)`` for nd motion states.
 
-    The parameter states follow the motion states: theta_f, theta_r, b, h at nd .. nd + 3.
+    The parameter states follow the motion states: theta_f, theta_r, b, g, h at nd .. nd + 4.
     ``stiffness(x, settings, k)``: (C, dC/dtheta) of axle k (:func:`.prediction.make_prediction`).
     """
-    nf, nr, nb, nh = nd, nd + 1, nd + 2, nd + 3
+    nf, nr, nb, ng, nh = nd, nd + 1, nd + 2, nd + 3, nd + 4
 
     @called_kernel
     def write_outputs(x, p, memo, settings, status, r_model, vy_model, out):
@@ -65,5 +67,7 @@ def make_outputs(nd, stiffness):  # noqa: ANN001, ANN201
         write_measures(memo, settings, out)
         out[O_HEADING_OFFSET] = x[nh]
         out[O_HEADING_OFFSET_STD] = math.sqrt(max(p[nh, nh], 0.0))
+        out[O_STEERING_GAIN] = x[ng]
+        out[O_STEERING_GAIN_STD] = math.sqrt(max(p[ng, ng], 0.0))
 
     return write_outputs

@@ -68,7 +68,7 @@ def make_prediction(heading, lagged):  # noqa: ANN001, ANN201 - numba closures
     lag = N_LAG if lagged else 0
     n = (HEADING_STATES if heading else YAW_RATE_STATES) + lag
     nd = (N_MOTION_HEADING if heading else N_MOTION_YAW_RATE) + lag  # motion states and slip lags
-    nf, nr, nb = nd, nd + 1, nd + 2  # theta_f, theta_r, steering offset
+    nf, nr, nb, ng = nd, nd + 1, nd + 2, nd + 3  # theta_f, theta_r, steering offset, its gain's error
     if lagged:
         discretize_n = discretize_heading_lagged if heading else discretize_yaw_rate_lagged
     else:
@@ -98,6 +98,12 @@ def make_prediction(heading, lagged):  # noqa: ANN001, ANN201 - numba closures
             p[X_PSI, X_PSI] = settings[S_P0_PSI]
 
     @inline_kernel
+    def wheel_ramp(x, sensor, sensor_rate):
+        """The wheel angle's ramp over the interval from the sensor's: (1 + g) sensor - b, and (1 + g) its rate."""
+        gain = 1.0 + x[ng]
+        return gain * sensor - x[nb], gain * sensor_rate
+
+    @inline_kernel
     def stiffness(x, settings, k):
         """C of theta_f (k = 0) or theta_r (k = 1), and dC/dtheta."""
         if settings[S_LOG] > 0.5:
@@ -106,29 +112,34 @@ def make_prediction(heading, lagged):  # noqa: ANN001, ANN201 - numba closures
         return x[nf + k], 1.0
 
     @inline_kernel
+    def ramp_start(steering, steering_rate, dt, method):
+        """The sensor's angle the interval's ramp starts from: the mean minus rate dt / 2 (``exact``), the mean (``euler``)."""
+        return steering if method == EULER else steering - 0.5 * dt * steering_rate
+
+    @inline_kernel
     def predict_n(x, model, vehicle, settings, dt, speed, steering, steering_rate, relaxation, ws):
         """X <- f(x, u), model <- f(model, u); F = df/dx into ws[W_F], df/dvx into ws[W_VEC, V_SPEED_GAIN].
 
-        The wheel angle is the sensor's minus the offset b: a ramp from (mean - b) - rate dt / 2
-        (``exact``) or the held mean - b (``euler``), so df/db = -E[:, delta]. ``relaxation``: the
-        tires' relaxation length the slip lags follow (0: held, the forces as in eq. 4).
+        The wheel angle is the sensor's times 1 + g minus the offset b: a ramp from (1 + g) (mean - rate dt / 2) - b
+        (``exact``) or the held (1 + g) mean - b (``euler``), so df/db = -E[:, delta] and df/dg = E[:, delta] sensor
+        + E[:, delta_rate] rate. ``relaxation``: the tires' relaxation length the slip lags follow (0: held, the
+        forces as in eq. 4).
         """
         cf, dcf = stiffness(x, settings, 0)
         cr, dcr = stiffness(x, settings, 1)
         method = int(settings[S_METHOD])
         speed_noise = settings[S_SPEED_NOISE] > 0.5  # dx/dvx only when the speed's noise enters Q
         discretize_n(cf, cr, dcf, dcr, speed, dt, vehicle, method, speed_noise, relaxation, ws)
-        level = steering - x[nb]
-        if method != EULER:
-            level -= 0.5 * dt * steering_rate
+        sensor = ramp_start(steering, steering_rate, dt, method)
+        level, rate = wheel_ramp(x, sensor, steering_rate)
         for i in range(nd, n):  # the parameter rows (random walks); the motion rows are written below
             for j in range(n):
                 ws[W_F, i, j] = 1.0 if i == j else 0.0
         for i in range(nd):
-            acc = ws[W_E, i, nd] * level + ws[W_E, i, nd + 1] * steering_rate
-            acc_f = ws[W_DE_F, i, nd] * level + ws[W_DE_F, i, nd + 1] * steering_rate
-            acc_r = ws[W_DE_R, i, nd] * level + ws[W_DE_R, i, nd + 1] * steering_rate
-            acc_v = ws[W_DE_V, i, nd] * level + ws[W_DE_V, i, nd + 1] * steering_rate
+            acc = ws[W_E, i, nd] * level + ws[W_E, i, nd + 1] * rate
+            acc_f = ws[W_DE_F, i, nd] * level + ws[W_DE_F, i, nd + 1] * rate
+            acc_r = ws[W_DE_R, i, nd] * level + ws[W_DE_R, i, nd + 1] * rate
+            acc_v = ws[W_DE_V, i, nd] * level + ws[W_DE_V, i, nd + 1] * rate
             acc_m = acc
             for j in range(nd):
                 acc += ws[W_E, i, j] * x[j]
@@ -140,6 +151,7 @@ def make_prediction(heading, lagged):  # noqa: ANN001, ANN201 - numba closures
             ws[W_F, i, nf] = acc_f
             ws[W_F, i, nr] = acc_r
             ws[W_F, i, nb] = -ws[W_E, i, nd]
+            ws[W_F, i, ng] = ws[W_E, i, nd] * sensor + ws[W_E, i, nd + 1] * steering_rate
             ws[W_F, i, n - 1] = 0.0  # h, the heading's misalignment: in the vy measurement only
             ws[W_VEC, V_NEW_X, i], ws[W_VEC, V_NEW_MODEL, i] = acc, acc_m
             ws[W_VEC, V_SPEED_GAIN, i] = acc_v if speed_noise else 0.0
@@ -210,11 +222,9 @@ def make_prediction(heading, lagged):  # noqa: ANN001, ANN201 - numba closures
         cr, dcr = stiffness(x, settings, 1)
         method = int(settings[S_METHOD])
         discretize_n(cf, cr, dcf, dcr, speed, dt, perturbed, method, False, relaxation, ws)
-        level = steering - x[nb]
-        if method != EULER:
-            level -= 0.5 * dt * steering_rate
+        level, rate = wheel_ramp(x, ramp_start(steering, steering_rate, dt, method), steering_rate)
         for i in range(nd):
-            acc = ws[W_E, i, nd] * level + ws[W_E, i, nd + 1] * steering_rate
+            acc = ws[W_E, i, nd] * level + ws[W_E, i, nd + 1] * rate
             for j in range(nd):
                 acc += ws[W_E, i, j] * x[j]
             ws[W_BIAS, B_INERTIA, i] = acc
@@ -230,9 +240,9 @@ def make_prediction(heading, lagged):  # noqa: ANN001, ANN201 - numba closures
         cr, dcr = stiffness(x, settings, 1)
         method = int(settings[S_METHOD])
         discretize_n(cf, cr, dcf, dcr, speed, dt, vehicle, method, False, 0.0, ws)
-        level = steering - x[nb] - (0.0 if method == EULER else 0.5 * dt * steering_rate)
-        end_vy = ws[W_E, X_VY, nd] * level + ws[W_E, X_VY, nd + 1] * steering_rate
-        end_r = ws[W_E, X_R, nd] * level + ws[W_E, X_R, nd + 1] * steering_rate
+        level, rate = wheel_ramp(x, ramp_start(steering, steering_rate, dt, method), steering_rate)
+        end_vy = ws[W_E, X_VY, nd] * level + ws[W_E, X_VY, nd + 1] * rate
+        end_r = ws[W_E, X_R, nd] * level + ws[W_E, X_R, nd + 1] * rate
         for j in range(nd):
             end_vy += ws[W_E, X_VY, j] * x[j]
             end_r += ws[W_E, X_R, j] * x[j]

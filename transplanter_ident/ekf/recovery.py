@@ -11,7 +11,7 @@ even once Q is restored. So the filter re-initialises (status RESTARTED) when
 
 then the motion states come from the measurement (as after a gap), and when it is the parameter
 states [theta_f, theta_r, b, h] that diverged (in the failed step, or already before it), their
-covariance goes back to P0 (``S_P0_THETA_F``, ``S_P0_THETA_R``, ``S_P0_OFFSET``, ``S_P0_HEADING_OFFSET``).
+covariance goes back to P0 (``S_P0_THETA_F``, ``S_P0_THETA_R``, ``S_P0_OFFSET``, ``S_P0_STEERING_GAIN``, ``S_P0_HEADING_OFFSET``).
 Their values are kept: they are finite and within the stiffness bounds after a rollback (a non-finite
 one would restart from the middle of the bounds, or a zero offset).
 """
@@ -30,6 +30,7 @@ from transplanter_ident.ekf.layout import (
     S_LOW,
     S_P0_HEADING_OFFSET,
     S_P0_OFFSET,
+    S_P0_STEERING_GAIN,
     S_P0_THETA_F,
     S_P0_THETA_R,
     V_BACKUP_CHANGE,
@@ -52,7 +53,7 @@ def make_recovery(n, nd, max_variance, write_outputs, restart_motion):  # noqa: 
 
     ``write_outputs`` and ``restart_motion`` are the step's own helpers (:func:`.kernels.make_kernels`).
     """
-    nf, nr, nb = nd, nd + 1, nd + 2
+    nf, nr, nb, ng = nd, nd + 1, nd + 2, nd + 3
 
     @inline_kernel
     def bounded(x, p, first):
@@ -75,11 +76,12 @@ def make_recovery(n, nd, max_variance, write_outputs, restart_motion):  # noqa: 
         p[nf, nf] = settings[S_P0_THETA_F]
         p[nr, nr] = settings[S_P0_THETA_R]
         p[nb, nb] = settings[S_P0_OFFSET]
+        p[ng, ng] = settings[S_P0_STEERING_GAIN]
         p[n - 1, n - 1] = settings[S_P0_HEADING_OFFSET]
         for k in (nf, nr):
             if not math.isfinite(x[k]):
                 x[k] = 0.5 * (settings[S_LOW] + settings[S_HIGH])
-        for k in (nb, n - 1):
+        for k in (nb, ng, n - 1):
             if not math.isfinite(x[k]):
                 x[k] = 0.0
 

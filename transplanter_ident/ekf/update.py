@@ -35,7 +35,7 @@ def make_update(n, nd, h1):  # noqa: ANN001, ANN201
 
     Returns (propagate_covariance, add_speed_noise, joseph_update, keep_speed_cross).
     """
-    nf, nr, nb = nd, nd + 1, nd + 2  # theta_f, theta_r, steering offset (then h, the heading's misalignment)
+    nf, nr, nb, ng = nd, nd + 1, nd + 2, nd + 3  # theta_f, theta_r, steering offset and gain error (then h)
 
     @inline_kernel
     def propagate_covariance(p, q, dt, adapting, settings, scale, ws):
@@ -109,20 +109,20 @@ def make_update(n, nd, h1):  # noqa: ANN001, ANN201
             memo[M_SPEED_CROSS + i] = c
 
     @inline_kernel
-    def joseph_update(x, p, e0, e1, s00, s01, s11, det, motion_only, heading_held, ws):
+    def joseph_update(x, p, e0, e1, s00, s01, s11, det, motion_only, heading_held, gain_held, ws):
         """X += K e; P = (I - K H) P (I - K H)^T + K R K^T with H = [H[0], e_h1] (H[0]: measurement_row.py).
 
         Evaluated expanded, P - K HP - (K HP)^T + K S K^T with S = H P H^T + R: the same function of
         K (so valid for any gain), in O(n^2). ``motion_only`` zeroes the parameter rows of K (a
         Schmidt update: the stiffness and offset keep their estimate and take the right covariance);
-        ``heading_held`` zeroes h's row alone.
+        ``heading_held`` zeroes h's row alone, ``gain_held`` g's.
         """
         i00, i01, i11 = s11 / det, -s01 / det, s00 / det
         for i in range(n):
             hp0, hp1 = vy_row_times_column(ws, n, p, i), p[h1, i]
             k0 = hp0 * i00 + hp1 * i01
             k1 = hp0 * i01 + hp1 * i11
-            if (motion_only and i >= nd) or (heading_held and i == n - 1):
+            if (motion_only and i >= nd) or (heading_held and i == n - 1) or (gain_held and i == ng):
                 k0, k1 = 0.0, 0.0
             ws[W_GAIN, G_K0, i] = k0
             ws[W_GAIN, G_K1, i] = k1
