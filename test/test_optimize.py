@@ -397,7 +397,7 @@ def test_divergence_gets_a_finite_penalty(sine_epochs) -> None:  # noqa: ANN001
     config = EstimatorConfig(options=FilterOptions(discretization="euler", stiffness_state="linear",
                                                    measurement="yaw_rate"))
     a = ekf.FilterArrays.from_config(config)
-    qs = np.array([[1e-1, 1e-1, 1e12, 1e12, 0.0, 0.0]])  # vy, r, Cf, Cr, steering offset, heading's misalignment
+    qs = np.array([[1e-1, 1e-1, 1e12, 1e12, 0.0, 0.0, 0.0]])  # vy, r, Cf, Cr, steering offset and gain, h
     rs = np.array([[1e-12, 1e-12]])
     value = batch_objective(kernel_input(sine_epochs), a.initial_state, a.initial_covariance, a.vehicle,
                             a.settings, qs, rs, ekf.MAE)[0]
