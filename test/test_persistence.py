@@ -7,16 +7,28 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 from ros_harness import ROOT, run_scenario
 from test_node import CONFIG, DIAGNOSTICS, PUBLISH_TYPES, bag_specs, online_outputs, record_spec, sample_bag
 
-from transplanter_ident.config.parameters import EstimatorConfig
+from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions
 from transplanter_ident.config.params_file import EstimatorParams
-from transplanter_ident.ekf.persistence import Keeper, LearnedState, PersistenceError, load, save
+from transplanter_ident.ekf.joint_ekf import JointEKF
+from transplanter_ident.ekf.layout import X_STEERING_GAIN
+from transplanter_ident.ekf.persistence import (
+    FORMAT_WITHOUT_GAIN,
+    Keeper,
+    LearnedState,
+    PersistenceError,
+    key_of,
+    load,
+    save,
+)
 
 
 def run_node(state: Path, specs: list, *, expected: int, stop_signal: str = "SIGINT") -> dict:
@@ -85,13 +97,39 @@ def test_a_foreign_or_implausible_file_is_refused_with_the_reason(first_run: tup
     assert "mass" in status or "bounds" in status
 
 
+COVARIANCE = ((1e-4, 0, 0, 0), (0, 1e-4, 0, 0), (0, 0, 1e-6, 0), (0, 0, 0, 1e-6))  # theta_f, theta_r, b, g
+
+
+def test_a_file_of_the_first_format_is_restored_with_the_gain_at_its_prior(tmp_path: Path) -> None:
+    """Format 1 (no g, 3 x 3): theta and b restored (inflated), g 0 with ekf.steering_gain_initial_variance."""
+    config = EstimatorConfig()
+    path = tmp_path / "old.yaml"
+    document = {"key": {**key_of(config), "format": FORMAT_WITHOUT_GAIN}, "stamp": 3.0,
+                "theta": [math.log(8000.0), math.log(10000.0)], "offset": 0.01,
+                "covariance": [[1e-4, 0, 0], [0, 1e-4, 0], [0, 0, 1e-6]]}
+    path.write_text(yaml.safe_dump(document))
+    restored = load(path, config)
+    assert restored.theta == (math.log(8000.0), math.log(10000.0)) and restored.offset == 0.01
+    assert restored.gain == 0.0 and len(restored.covariance) == 4
+    assert restored.covariance[3][3] == config.noise.steering_gain_initial_variance
+    assert restored.covariance[2][2] == pytest.approx(4e-6) and restored.covariance[0][3] == 0.0
+    document["covariance"] = [list(row) for row in COVARIANCE]  # a 4 x 4 under the old format is not one
+    path.write_text(yaml.safe_dump(document))
+    with pytest.raises(PersistenceError, match="3 x 3"):
+        load(path, config)
+
+
 def test_load_refuses_what_does_not_fit(tmp_path: Path) -> None:
     config = EstimatorConfig()
     path = tmp_path / "s.yaml"
-    good = LearnedState((math.log(8000.0), math.log(10000.0)), 0.01, ((1e-4, 0, 0), (0, 1e-4, 0), (0, 0, 1e-6)), 1.0)
+    good = LearnedState((math.log(8000.0), math.log(10000.0)), 0.01, COVARIANCE, 1.0, -0.008)
     save(path, config, good)
     restored = load(path, config)
     assert restored.theta == good.theta and restored.covariance[0][0] > 4 * 1e-4  # inflated
+    assert restored.gain == good.gain
+    save(path, config, LearnedState(good.theta, good.offset, COVARIANCE, 1.0, 0.5))
+    with pytest.raises(PersistenceError, match="steering gain error 0.5 is not plausible"):
+        load(path, config)
     path.write_text("key: [1, 2\n")
     with pytest.raises(PersistenceError, match="not a saved stiffness state"):
         load(path, config)
@@ -107,7 +145,7 @@ print("ready", flush=True)
 while True:
     k += 1
     save(path, config, LearnedState((math.log(8000.0 + k), math.log(10000.0)), 0.0,
-                                    ((1e-4, 0, 0), (0, 1e-4, 0), (0, 0, 1e-6)), float(k)))
+                                    ((1e-4, 0, 0, 0), (0, 1e-4, 0, 0), (0, 0, 1e-6, 0), (0, 0, 0, 1e-6)), float(k)))
 """
 
 
@@ -125,3 +163,15 @@ def test_killed_mid_write_leaves_a_whole_file(tmp_path: Path, delay: float) -> N
     keeper = Keeper(path, 60.0, EstimatorConfig())
     assert keeper.restore() is not None
     assert not list(tmp_path.glob(".state.yaml.*.tmp"))
+
+
+@pytest.mark.parametrize("estimated", [True, False])
+def test_the_filter_restores_the_gain_only_where_it_estimates_it(estimated: bool) -> None:
+    """JointEKF.restore: g and its covariance row back with ekf.estimate_steering_gain; else g 0, row 0."""
+    config = replace(EstimatorConfig(), options=FilterOptions(estimate_steering_gain=estimated))
+    learned = LearnedState((math.log(8000.0), math.log(10000.0)), 0.01, COVARIANCE, 1.0, -0.008)
+    ekf = JointEKF(config)
+    ekf.restore(learned)
+    assert ekf.state[X_STEERING_GAIN] == (-0.008 if estimated else 0.0)
+    assert ekf.covariance[X_STEERING_GAIN, X_STEERING_GAIN] == (1e-6 if estimated else 0.0)
+    assert np.isclose(ekf.learned_state(2.0).gain, -0.008 if estimated else 0.0)

@@ -256,19 +256,24 @@ class JointEKF:
         self._config, self._arrays = config, arrays
 
     def learned_state(self, stamp: float) -> LearnedState:
-        """The parameter states [theta_f, theta_r, b] and their covariance (what persistence saves)."""
+        """The parameter states [theta_f, theta_r, b, g] and their covariance (what persistence saves)."""
         block = self.covariance[np.ix_(PARAMETER_STATES, PARAMETER_STATES)]
         return LearnedState((float(self.state[X_THETA_F]), float(self.state[X_THETA_R])),
-                            float(self.state[X_OFFSET]), tuple(tuple(float(v) for v in row) for row in block), stamp)
+                            float(self.state[X_OFFSET]), tuple(tuple(float(v) for v in row) for row in block), stamp,
+                            float(self.state[X_STEERING_GAIN]))
 
     def restore(self, learned: LearnedState) -> None:
-        """Start from saved parameter states (after :meth:`reset`); a fixed offset stays as configured."""
+        """Start from saved parameter states (after :meth:`reset`); a fixed offset or gain stays as configured."""
         self.state[X_THETA_F], self.state[X_THETA_R] = learned.theta
         block = np.array(learned.covariance, dtype=np.float64)
-        if not self._config.options.estimate_steering_offset:
-            block[2, :] = block[:, 2] = 0.0
-        else:
-            self.state[X_OFFSET] = learned.offset
+        for k, (index, estimated, value) in enumerate(zip(
+                PARAMETER_STATES, (True, True, self._config.options.estimate_steering_offset,
+                                   self._config.options.estimate_steering_gain),
+                (*learned.theta, learned.offset, learned.gain), strict=True)):
+            if estimated:
+                self.state[index] = value
+            else:
+                block[k, :] = block[:, k] = 0.0
         index = np.ix_(PARAMETER_STATES, PARAMETER_STATES)
         self.covariance[index] = block
         self._guard.trust_restored()

@@ -39,7 +39,7 @@ X_THETA_F, X_THETA_R, X_OFFSET, X_STEERING_GAIN, X_HEADING_OFFSET = -5, -4, -3, 
 N_PARAMETER_STATES = 5  # [theta_f, theta_r, b, g, h], after the motion states and slip lags
 #: the parameter states a learned state keeps (persistence.py) and a new pass starts from (relinearization.py);
 #: the heading's misalignment is learnt anew in a minute (ekf.estimate_heading_offset)
-PARAMETER_STATES = [X_THETA_F, X_THETA_R, X_OFFSET]
+PARAMETER_STATES = [X_THETA_F, X_THETA_R, X_OFFSET, X_STEERING_GAIN]
 
 # measurement z = [vy at the antenna, psi] (heading) or [vy at the antenna, r] (yaw_rate)
 Z_VY, Z_SECOND = 0, 1
