@@ -38,7 +38,7 @@ def slow_information(epochs: EpochArrays, theta: np.ndarray, vehicle: VehiclePar
     """Central differences of the open-loop outputs [vy + ax r, psi], restarted every ``segment`` s."""
 
     def outputs(th: np.ndarray) -> np.ndarray:
-        cf, cr, offset = math.exp(th[0]), math.exp(th[1]), th[2]
+        cf, cr, offset, gain = math.exp(th[0]), math.exp(th[1]), th[2], 1.0 + th[3]
         rows, start, x = [], -math.inf, np.zeros(3)
         for k in range(len(epochs)):
             t = epochs.t[k]
@@ -51,11 +51,11 @@ def slow_information(epochs: EpochArrays, theta: np.ndarray, vehicle: VehiclePar
             dt, rate = t - epochs.t[k - 1], epochs.steering_rate[k]
             phi, gamma = discrete_matrices(vehicle, cf, cr, epochs.speed[k], dt, with_heading=True)
             ramp = discrete_ramp_column(vehicle, cf, cr, epochs.speed[k], dt)
-            x = phi @ x + gamma * (epochs.steering[k] - offset - 0.5 * rate * dt) + ramp * rate
+            x = phi @ x + gamma * (gain * (epochs.steering[k] - 0.5 * rate * dt) - offset) + ramp * gain * rate
             rows.append(np.array([x[0] + vehicle.antenna_x * x[1], x[2]]))
         return rows
 
-    steps = (1e-5, 1e-5, 1e-7)
+    steps = (1e-5, 1e-5, 1e-7, 1e-6)
     plus, minus = [], []
     for i, h in enumerate(steps):
         up, down = theta.copy(), theta.copy()
@@ -88,7 +88,7 @@ def test_the_compiled_information_matches_central_differences_of_the_open_loop_m
     vehicle = VehicleParams(antenna_x=0.5)
     result = simulate(sine_drive(3, duration=25.0, vehicle=vehicle))
     epochs = EpochArrays(epochs_from_result(result, vehicle))
-    theta = np.array([math.log(7000.0), math.log(11000.0), 0.004])
+    theta = np.array([math.log(7000.0), math.log(11000.0), 0.004, -0.01])
     fast = np.zeros((N_INFORMATION, N_INFORMATION))
     used = output_error_information(kernel_input(epochs), theta, vehicle_array(vehicle), vehicle.antenna_x,
                                     np.array(R_NOISE), 10.0, 0.3, 2.0, EXACT, False, work_buffer(), fast)
@@ -104,7 +104,7 @@ def test_the_information_takes_each_epochs_reported_variance_as_the_filter_does(
 
     vehicle = VehicleParams(antenna_x=0.5)
     rows = kernel_input(EpochArrays(epochs_from_result(simulate(sine_drive(4, duration=20.0, vehicle=vehicle)))))
-    theta = np.array([math.log(8000.0), math.log(10000.0), 0.0])
+    theta = np.array([math.log(8000.0), math.log(10000.0), 0.0, 0.0])
 
     def information(reported_scale: float) -> np.ndarray:
         scaled = rows.copy()

@@ -17,9 +17,13 @@ from drives import sine_drive
 from helpers import epochs_from_result
 
 from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions
-from transplanter_ident.ekf.identifiability import published_covariance, weak_directions
+from transplanter_ident.ekf.identifiability import (
+    published_covariance,
+    stiffness_information,
+    weak_directions,
+)
 from transplanter_ident.ekf.joint_ekf import JointEKF, run_sequence
-from transplanter_ident.ekf.layout import O_CF_STD, O_CORRELATION, O_CR_STD
+from transplanter_ident.ekf.layout import I_GAIN, I_OFFSET, N_INFORMATION, O_CF_STD, O_CORRELATION, O_CR_STD
 from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.evaluation.health import OK, WARN
 from transplanter_ident.evaluation.identifiability_report import identifiability_report
@@ -49,15 +53,29 @@ def test_the_published_covariance_equals_the_rule_written_out() -> None:
 
 
 def test_weak_directions_are_the_eigenvectors_past_the_limit() -> None:
-    information = np.zeros((3, 3))
+    information = np.zeros((N_INFORMATION, N_INFORMATION))
     information[0, 0], information[1, 1], information[2, 2] = 1.0 / 0.5 ** 2, 1.0 / 0.01 ** 2, 1.0
-    weak = weak_directions(information, offset_estimated=False, limit=LIMIT)
+    weak = weak_directions(information, (), limit=LIMIT)
     assert weak.shape == (1, 2) and abs(weak[0, 0]) == pytest.approx(1.0)
-    assert weak_directions(np.zeros((3, 3)), True, LIMIT).shape == (2, 2)  # no data: nothing is pinned
-    # a nuisance offset that moves the output as ln Cf does takes Cf's information away
-    aligned = np.array([[1e4, 0.0, 1e4], [0.0, 1e4, 0.0], [1e4, 0.0, 1e4 + 1.0]])
-    assert weak_directions(aligned, True, LIMIT).shape == (1, 2)
-    assert weak_directions(aligned, False, LIMIT).shape == (0, 2)
+    no_data = np.zeros((N_INFORMATION, N_INFORMATION))
+    assert weak_directions(no_data, (I_OFFSET, I_GAIN), LIMIT).shape == (2, 2)  # no data: nothing is pinned
+    # a nuisance that moves the output as ln Cf does takes Cf's information away, the offset or the gain alike
+    for nuisance in (I_OFFSET, I_GAIN):
+        aligned = np.zeros((N_INFORMATION, N_INFORMATION))
+        aligned[:2, :2] = np.diag([1e4, 1e4])
+        aligned[0, nuisance] = aligned[nuisance, 0] = 1e4
+        aligned[nuisance, nuisance] = 1e4 + 1.0
+        assert weak_directions(aligned, (nuisance,), LIMIT).shape == (1, 2)
+        assert weak_directions(aligned, (I_OFFSET, I_GAIN), LIMIT).shape == (1, 2)  # the other one uninformed
+        assert weak_directions(aligned, (), LIMIT).shape == (0, 2)
+    # both nuisances at once: their joint block is taken out, not each alone
+    joint = np.diag([1e4, 1e4, 1.0, 1.0])
+    joint[0, 2] = joint[2, 0] = joint[0, 3] = joint[3, 0] = 50.0
+    joint[2, 3] = joint[3, 2] = 0.5  # the offset and the gain inform the output together
+    expected = joint[:2, :2] - joint[:2, 2:] @ np.linalg.inv(joint[2:, 2:]) @ joint[2:, :2]
+    np.testing.assert_allclose(stiffness_information(joint, (I_OFFSET, I_GAIN)), expected, rtol=1e-12)
+    one_by_one = joint[0, 0] - 50.0 ** 2 - 50.0 ** 2
+    assert abs(expected[0, 0] - one_by_one) > 1000.0
 
 
 @pytest.mark.parametrize("overrides", [SLOW_STEP, {"duration": 40.0}], ids=["slow_step", "sine"])

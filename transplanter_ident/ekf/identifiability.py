@@ -5,9 +5,10 @@ held step (1 m/s) Cf moves the yaw rate only through the understeer term, the li
 points wander, and the band ends far from the truth. So every ``ekf.identifiability_period`` of
 data the Fisher information of the recent epochs (the last ``ekf.identifiability_memory`` s, at
 most ``ekf.identifiability_max_epochs``) is summed at the current estimate
-(:func:`.information.output_error_information`), the steering offset taken as a nuisance:
+(:func:`.information.output_error_information`), the steering offset and gain error taken as nuisances
+where the filter estimates them (n: those of b, g):
 
-    J = I_ss - I_sb I_bs / I_bb          (2 x 2, ln Cf and ln Cr; I_ss alone without an offset state)
+    J = I_ss - I_sn I_nn^-1 I_ns          (2 x 2, ln Cf and ln Cr; I_ss alone without either state)
 
 It is evaluated only at epochs whose wheel angle is at least ``ekf.identifiability_min_steering``
 (on a straight the data add next to no information, so the last bound is held), and only every
@@ -32,13 +33,14 @@ from collections import deque
 
 import numpy as np
 
-from transplanter_ident.config.parameters import EstimatorConfig
+from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions
 from transplanter_ident.ekf.information import output_error_information
 from transplanter_ident.ekf.layout import (
     E_STEERING,
     E_T,
     EULER,
     EXACT,
+    I_GAIN,
     I_OFFSET,
     N_INFORMATION,
     O_CF,
@@ -52,6 +54,7 @@ from transplanter_ident.ekf.layout import (
     O_NOISE_SCALE_VY,
     O_OFFSET,
     O_STATUS,
+    O_STEERING_GAIN,
     X_THETA_F,
     X_THETA_R,
     StepStatus,
@@ -72,7 +75,7 @@ _SKIPPED_CODES = np.array(sorted(int(status) for status in SKIPPED), dtype=np.fl
 
 def window_information(config: EstimatorConfig, rows: np.ndarray, theta: np.ndarray, segment: float = SEGMENT,
                        noise_factors: tuple[float, float] = (1.0, 1.0)) -> tuple[np.ndarray, int]:
-    """(3, 3) Fisher information of (ln Cf, ln Cr, b) of the epochs ``rows`` at ``theta``, and the epochs used.
+    """(4, 4) Fisher information of (ln Cf, ln Cr, b, g) of the epochs ``rows`` at ``theta``, and the epochs used.
 
     ``noise_factors``: what the filter's R is above the configured one (layout.O_NOISE_SCALE_* times the
     widening of O_NOISE_CORRELATION_*), so the information is that of the measurements as noisy, and as
@@ -89,21 +92,30 @@ def window_information(config: EstimatorConfig, rows: np.ndarray, theta: np.ndar
     return information, int(used)
 
 
-def stiffness_information(information: np.ndarray, offset_estimated: bool) -> np.ndarray:
-    """(2, 2) information of (ln Cf, ln Cr) from (3, 3), the offset a nuisance parameter when estimated."""
+def nuisances(options: FilterOptions) -> tuple[int, ...]:
+    """The information's indices (layout.I_*) of the filter's estimated nuisance parameters: b, g."""
+    return tuple(index for index, estimated in ((I_OFFSET, options.estimate_steering_offset),
+                                                (I_GAIN, options.estimate_steering_gain)) if estimated)
+
+
+def stiffness_information(information: np.ndarray, nuisance: tuple[int, ...]) -> np.ndarray:
+    """(2, 2) information of (ln Cf, ln Cr) from (4, 4), the ``nuisance`` parameters (:func:`nuisances`) taken out.
+
+    A nuisance the data do not inform at all (zero information) adds nothing to take out.
+    """
     if not np.all(np.isfinite(information)):  # bad input reached the sum: nothing is known
         return np.full((I_OFFSET, I_OFFSET), np.nan)
     stiffness = information[:I_OFFSET, :I_OFFSET].copy()
-    offset = information[I_OFFSET, I_OFFSET]
-    if offset_estimated and offset > 0.0:
-        cross = information[:I_OFFSET, I_OFFSET]
-        stiffness -= np.outer(cross, cross) / offset
+    informed = [k for k in nuisance if information[k, k] > 0.0]
+    if informed:
+        cross = information[:I_OFFSET, informed]
+        stiffness -= cross @ np.linalg.pinv(information[np.ix_(informed, informed)]) @ cross.T
     return 0.5 * (stiffness + stiffness.T)
 
 
-def weak_directions(information: np.ndarray, offset_estimated: bool, limit: float) -> np.ndarray:
+def weak_directions(information: np.ndarray, nuisance: tuple[int, ...], limit: float) -> np.ndarray:
     """(k, 2) unit vectors in (ln Cf, ln Cr) whose Cramér-Rao 1-sigma exceeds ``limit`` (k = 0, 1 or 2)."""
-    pinned = stiffness_information(information, offset_estimated)
+    pinned = stiffness_information(information, nuisance)
     if not np.all(np.isfinite(pinned)):
         return np.eye(2)
     values, vectors = np.linalg.eigh(pinned)
@@ -185,14 +197,14 @@ class IdentifiabilityGuard:
 
     def _evaluate(self, rows: np.ndarray, out: np.ndarray, t: float) -> None:
         options = self._config.options
-        theta = np.array([math.log(out[O_CF]), math.log(out[O_CR]), out[O_OFFSET]])
+        theta = np.array([math.log(out[O_CF]), math.log(out[O_CR]), out[O_OFFSET], out[O_STEERING_GAIN]])
         widen = getattr(widening, "py_func", widening)  # the kernel's formula in Python: nothing to compile
         factors = (float(out[O_NOISE_SCALE_VY] * widen(out[O_NOISE_CORRELATION_VY])),
                    float(out[O_NOISE_SCALE_SECOND] * widen(out[O_NOISE_CORRELATION_SECOND])))
         self.information, _ = window_information(self._config, rows, theta, noise_factors=factors)
         limit = options.max_identifiable_rel_std
-        self._weak = weak_directions(self.information, options.estimate_steering_offset, limit)
-        firm = len(weak_directions(self.information, options.estimate_steering_offset, limit / RELAXED_MARGIN)) == 0
+        self._weak = weak_directions(self.information, nuisances(options), limit)
+        firm = len(weak_directions(self.information, nuisances(options), limit / RELAXED_MARGIN)) == 0
         self._next = t + options.identifiability_period * (RELAXED_PERIODS if firm else 1)
 
 

@@ -1,18 +1,20 @@
-"""Output-error Fisher information of (ln Cf, ln Cr, b) from a drive (issue #11: the Cramér-Rao bound).
+"""Output-error Fisher information of (ln Cf, ln Cr, b, g) from a drive (issue #11: the Cramér-Rao bound).
 
 The bicycle model (paper eq. 4, discretised as the filter does, :mod:`.model`) is driven by the
 measured steering and speed and started from the measured state [vy, r, psi]; it is restarted
 every ``segment`` seconds (multiple shooting), after a gap and below ``min_speed``, so that an
-open-loop heading never runs away. Its output sensitivities to theta = (ln Cf, ln Cr) and to the
-steering offset b are carried forward exactly with dE/dtheta of :func:`.model.discretize`:
+open-loop heading never runs away. Its output sensitivities to theta = (ln Cf, ln Cr), to the
+steering offset b and to the steering gain's error g (wheel = (1 + g) sensor - b) are carried forward
+exactly with dE/dtheta of :func:`.model.discretize`:
 
-    S_{k+1} = E S_k + [dE/dtheta_f u_k, dE/dtheta_r u_k, -E[:, delta]]     (u_k = [x_k; delta; rate])
+    S_{k+1} = E S_k + [dE/dtheta_f u_k, dE/dtheta_r u_k, -E[:, delta], E[:, (delta, rate)] s_k]
+    (u_k = [x_k; delta; rate], s_k = the sensor's ramp [start; rate])
 
 and the information of the measurements z = [vy + antenna_x r, psi], whose noise is the
 filter's full R of each epoch (:mod:`.kernels`: the body-frame vy error holds -vx e_psi; with
 ``ekf.measurement_noise_from_covariance``, from the variances the GNSS reports), is summed:
 
-    I = sum_k H S_k^T R_k^-1 H S_k      (3 x 3, over ln Cf, ln Cr, b)
+    I = sum_k H S_k^T R_k^-1 H S_k      (4 x 4, over ln Cf, ln Cr, b, g)
 
 With a single antenna (``ekf.measurement: course``, the vehicle array's VEH_COURSE) psi is the antenna's
 course and z that course alone, of variance R_vy / vx^2.
@@ -36,6 +38,7 @@ from transplanter_ident.ekf.layout import (
     E_VAR_VY,
     E_VY,
     E_YAW_RATE,
+    I_GAIN,
     I_LN_CF,
     I_LN_CR,
     I_OFFSET,
@@ -58,15 +61,15 @@ from transplanter_ident.jit import entry_kernel
 
 #: the parameters of the information matrix, in its order (layout.I_*)
 STIFFNESS_PARAMETERS = ("ln_cf", "ln_cr")
-INFORMATION_PARAMETERS = (*STIFFNESS_PARAMETERS, "steering_offset")
+INFORMATION_PARAMETERS = (*STIFFNESS_PARAMETERS, "steering_offset", "steering_gain")
 
 
 @entry_kernel
 def output_error_information(epochs, theta, vehicle, antenna_x, r_noise, segment, min_speed, max_interval,  # noqa: ANN001, ANN201, PLR0913
                              method, from_covariance, ws, information):
-    """Add the Fisher information of ``epochs`` (kernel columns E_*) at ``theta`` to ``information`` (3, 3).
+    """Add the Fisher information of ``epochs`` (kernel columns E_*) at ``theta`` to ``information`` (4, 4).
 
-    theta : (3,)  ln Cf, ln Cr, steering offset b (rad)
+    theta : (4,)  ln Cf, ln Cr, steering offset b (rad), steering gain's relative error g
     vehicle : (N_VEHICLE,)  model.vehicle_array (VEH_COURSE: a course measured)
     r_noise : (2,)  diag R of vy (m/s)^2 and psi rad^2
     from_covariance : bool  R per epoch as the filter takes it with ``ekf.measurement_noise_from_covariance``:
@@ -76,7 +79,7 @@ def output_error_information(epochs, theta, vehicle, antenna_x, r_noise, segment
     """
     nd = N_MOTION_HEADING
     course = vehicle[VEH_COURSE] > 0.5  # psi is the antenna's course (model.course_row), the one measurement
-    cf, cr, offset = math.exp(theta[I_LN_CF]), math.exp(theta[I_LN_CR]), theta[I_OFFSET]
+    cf, cr, offset, gain = math.exp(theta[I_LN_CF]), math.exp(theta[I_LN_CR]), theta[I_OFFSET], 1.0 + theta[I_GAIN]
     x = np.zeros(nd)
     new_x = np.zeros(nd)
     sens = np.zeros((nd, N_INFORMATION))
@@ -94,8 +97,9 @@ def output_error_information(epochs, theta, vehicle, antenna_x, r_noise, segment
             sens[:, :] = 0.0
             start = t
             continue
-        rate = epochs[k, E_STEERING_RATE]
-        delta = epochs[k, E_STEERING] - offset - 0.5 * rate * dt  # the ramp's start, as the filter drives it
+        sensor_rate = epochs[k, E_STEERING_RATE]
+        sensor = epochs[k, E_STEERING] - 0.5 * sensor_rate * dt  # the ramp's start, as the filter drives it
+        delta, rate = gain * sensor - offset, gain * sensor_rate
         discretize_heading(cf, cr, cf, cr, speed, dt, vehicle, method, False, 0.0, ws)
         for i in range(nd):
             acc = ws[W_E, i, nd] * delta + ws[W_E, i, nd + 1] * rate
@@ -109,6 +113,7 @@ def output_error_information(epochs, theta, vehicle, antenna_x, r_noise, segment
             new_sens[i, I_LN_CF] = d_f
             new_sens[i, I_LN_CR] = d_r
             new_sens[i, I_OFFSET] = -ws[W_E, i, nd]
+            new_sens[i, I_GAIN] = ws[W_E, i, nd] * sensor + ws[W_E, i, nd + 1] * sensor_rate
             for p in range(N_INFORMATION):
                 for j in range(nd):
                     new_sens[i, p] += ws[W_E, i, j] * sens[j, p]

@@ -192,8 +192,8 @@ MAE, NLL = 0, 1
 DIVERGENCE_PENALTY = 1.0e6
 
 # the Fisher information's parameters (information.py), in its order
-I_LN_CF, I_LN_CR, I_OFFSET = 0, 1, 2
-N_INFORMATION = 3
+I_LN_CF, I_LN_CR, I_OFFSET, I_GAIN = 0, 1, 2, 3  # I_GAIN: the steering gain's relative error g
+N_INFORMATION = 4
 
 # work-buffer slots, ws[slot, i, j]: the discretisation (model.py) ...
 W_E, W_DE_F, W_DE_R, W_M, W_DM_F, W_DM_R = 0, 1, 2, 3, 4, 5

@@ -19,9 +19,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from transplanter_ident.config.parameters import EstimatorConfig
-from transplanter_ident.ekf.identifiability import SEGMENT, stiffness_information, window_information
+from transplanter_ident.ekf.identifiability import (
+    SEGMENT,
+    nuisances,
+    stiffness_information,
+    window_information,
+)
 from transplanter_ident.ekf.joint_ekf import kernel_input
-from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD, O_OFFSET
+from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD, O_OFFSET, O_STEERING_GAIN
 from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.evaluation.identifiability import Identifiability
 
@@ -54,20 +59,24 @@ class CramerRaoBound:
                 f"{ratios[0]} / {ratios[1]} of it; {self.identifiability.describe()}")
 
 
-def cramer_rao_bound(config: EstimatorConfig, epochs: EpochArrays, cornering_stiffness: tuple[float, float],
-                     steering_offset: float, segment: float = SEGMENT) -> CramerRaoBound | None:
-    """The bound at (Cf, Cr, offset) from these epochs; None in yaw_rate mode or without information."""
+def cramer_rao_bound(config: EstimatorConfig, epochs: EpochArrays, cornering_stiffness: tuple[float, float],  # noqa: PLR0913
+                     steering_offset: float, segment: float = SEGMENT, steering_gain: float = 0.0) -> CramerRaoBound | None:
+    """The bound at (Cf, Cr, offset, gain error) from these epochs; None in yaw_rate mode or without information."""
     options = config.options
     if not options.heading_state or len(epochs) < 2 or min(cornering_stiffness) <= 0.0:
         return None
-    theta = np.array([math.log(cornering_stiffness[0]), math.log(cornering_stiffness[1]), steering_offset])
+    theta = np.array([math.log(cornering_stiffness[0]), math.log(cornering_stiffness[1]), steering_offset,
+                      steering_gain])
     information, used = window_information(config, kernel_input(epochs), theta, segment)
-    return bound_from_information(information, options.estimate_steering_offset, used) if used > 0 else None
+    return bound_from_information(information, nuisances(options), used) if used > 0 else None
 
 
-def bound_from_information(information: np.ndarray, offset_estimated: bool, epochs: int) -> CramerRaoBound | None:
-    """The bound of (ln Cf, ln Cr) from the (3, 3) information of (ln Cf, ln Cr, b); None while singular."""
-    pinned = stiffness_information(information, offset_estimated)
+def bound_from_information(information: np.ndarray, nuisance: tuple[int, ...], epochs: int) -> CramerRaoBound | None:
+    """The bound of (ln Cf, ln Cr) from the (4, 4) information of (ln Cf, ln Cr, b, g); None while singular.
+
+    ``nuisance``: the information's indices taken out (:func:`.identifiability.nuisances`).
+    """
+    pinned = stiffness_information(information, nuisance)
     if not np.all(np.isfinite(pinned)) or np.linalg.det(pinned) <= 0.0:
         return None
     covariance = np.linalg.inv(pinned)
@@ -79,7 +88,8 @@ def bound_from_information(information: np.ndarray, offset_estimated: bool, epoc
 def final_bound_line(config: EstimatorConfig, epochs: EpochArrays, final_row: np.ndarray) -> str:
     """The line replay and tuner print for a bag: the bound at the filter's final estimate (an output row)."""
     stiffness = (float(final_row[O_CF]), float(final_row[O_CR]))
-    bound = cramer_rao_bound(config, epochs, stiffness, float(final_row[O_OFFSET]))
+    bound = cramer_rao_bound(config, epochs, stiffness, float(final_row[O_OFFSET]),
+                             steering_gain=float(final_row[O_STEERING_GAIN]))
     if bound is None:
         why = "yaw_rate mode" if not config.options.heading_state else "no informative epochs"
         return f"Cramér-Rao bound: not computed ({why})"

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from transplanter_ident.config.parameters import FilterOptions
+from transplanter_ident.ekf.identifiability import nuisances
 from transplanter_ident.ekf.joint_ekf import Estimate
 from transplanter_ident.evaluation.cramer_rao import bound_from_information
 from transplanter_ident.evaluation.health_report import OK, WARN, HealthReport
@@ -29,7 +30,7 @@ def identifiability_report(name: str, information: np.ndarray, estimate: Estimat
     if not options.heading_state or not options.identifiability_check:
         why = "yaw_rate mode" if not options.heading_state else "ekf.identifiability_check is false"
         return HealthReport(title, OK, f"not computed ({why})", values)
-    bound = bound_from_information(information, options.estimate_steering_offset, 0)
+    bound = bound_from_information(information, nuisances(options), 0)
     if bound is None or estimate is None:
         return HealthReport(title, WARN, "weakly identifiable: no informative epoch yet (the published band is "
                             "the prior's)", values)
