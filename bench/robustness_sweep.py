@@ -11,7 +11,7 @@ exceeds 10 %, the share of all epochs the band misses, and the final |error| (me
 valid estimate that the band misses is the worst output; an invalid one only costs availability.
 
 Run: ``.venv/bin/python bench/robustness_sweep.py [--seeds 5] [--option NAME=VALUE] [--validity NAME=VALUE]
-[--stiffness-noise FACTOR] [ROW ...]``.
+[--noise NAME=VALUE] [--stiffness-noise FACTOR] [ROW ...]``.
 """
 
 from __future__ import annotations
@@ -218,15 +218,15 @@ def with_stiffness_noise(noise: NoiseParams, factor: float) -> NoiseParams:
     return replace(noise, process_noise=(q[0], q[1], factor * q[2], factor * q[3]))
 
 
-def row_figures(name: str, seeds: int, options: FilterOptions, settings: ValiditySettings | None = None,
-                stiffness_noise: float = 1.0) -> str:
+def row_figures(name: str, seeds: int, options: FilterOptions, settings: ValiditySettings | None = None,  # noqa: PLR0913
+                stiffness_noise: float = 1.0, noise_fields: tuple[str, ...] = ()) -> str:
+    """One row's figures; ``noise_fields``: NoiseParams ``NAME=VALUE`` pairs set on the row's (``--noise``)."""
     settings = settings or ValiditySettings()
     shares, finals = [], []
     for seed in range(seeds):
         result, told = drive(name, seed)
-        config = EstimatorConfig(vehicle=told, options=options,
-                                 noise=with_stiffness_noise(ALL_ROWS[name].get("filter_noise", NoiseParams()),
-                                                            stiffness_noise))
+        noise = with_stiffness_noise(ALL_ROWS[name].get("filter_noise", NoiseParams()), stiffness_noise)
+        config = EstimatorConfig(vehicle=told, options=options, noise=_with(noise, list(noise_fields)))
         run = run_drive(result, config)
         valid = decide_sequence(config, settings, epochs_of(result, **steering_sensor(told)), run.outputs)
         after = run.t >= 30.0
@@ -246,8 +246,15 @@ def row_figures(name: str, seeds: int, options: FilterOptions, settings: Validit
 
 
 def _with(base: object, pairs: list[str]) -> object:
-    """``base`` with the numeric fields of ``NAME=VALUE`` pairs replaced."""
-    return replace(base, **{k: float(v) for k, v in (o.split("=", 1) for o in pairs)})
+    """``base`` with the fields of ``NAME=VALUE`` pairs replaced (numbers; true/false for a flag)."""
+    def value(name: str, text: str) -> float | bool:
+        if isinstance(getattr(base, name, None), bool):
+            if text.lower() not in ("true", "false", "1", "0"):
+                raise ValueError(f"{name} is a flag: true or false, got {text!r}")
+            return text.lower() in ("true", "1")
+        return float(text)
+
+    return replace(base, **{k: value(k, v) for k, v in (o.split("=", 1) for o in pairs)})
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -257,6 +264,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="a FilterOptions field (number) to set, e.g. saturation_prior=0 (repeatable)")
     parser.add_argument("--validity", action="append", default=[], metavar="NAME=VALUE",
                         help="a ValiditySettings field (number) to set, e.g. max_autocorrelation=1 (repeatable)")
+    parser.add_argument("--noise", action="append", default=[], metavar="NAME=VALUE",
+                        help="a NoiseParams field (number) to set, e.g. steering_gain_initial_variance=1e-4 (repeatable)")
     parser.add_argument("--stiffness-noise", type=float, default=1.0, metavar="FACTOR",
                         help="the stiffness random walks (ekf.process_noise's last two entries) x FACTOR")
     parser.add_argument("rows", nargs="*", help="rows to run (default: all): " + ", ".join(ALL_ROWS).replace("%", "%%"))
@@ -267,14 +276,17 @@ def main(argv: list[str] | None = None) -> int:
     try:
         options = _with(FilterOptions(), args.option)
         settings = _with(ValiditySettings(), args.validity)
+        _with(NoiseParams(), args.noise)
     except (TypeError, ValueError) as error:
-        parser.error(f"--option/--validity: {error}")
+        parser.error(f"--option/--validity/--noise: {error}")
     width = max(len(name) for name in ALL_ROWS)
     noise = f" stiffness random walk x{args.stiffness_noise:g}" if args.stiffness_noise != 1.0 else ""
-    print(f"seeds 0-{args.seeds - 1}, from 30 s on; defaults{''.join(' ' + o for o in args.option + args.validity)}{noise}")
+    changed = "".join(" " + o for o in args.option + args.validity + args.noise)
+    print(f"seeds 0-{args.seeds - 1}, from 30 s on; defaults{changed}{noise}")
     print(f"{'condition':<{width}}  valid  valid&missed  valid&err>10%  missed  final |err| median, worst [%]")
     for name in args.rows or ALL_ROWS:
-        print(f"{name:<{width}}  {row_figures(name, args.seeds, options, settings, args.stiffness_noise)}", flush=True)
+        figures = row_figures(name, args.seeds, options, settings, args.stiffness_noise, tuple(args.noise))
+        print(f"{name:<{width}}  {figures}", flush=True)
     return 0
 
 
