@@ -22,7 +22,7 @@ from helpers import QUICK_TUNE, replayed_errors, sim_samples
 from test_validity import epochs_of
 
 from transplanter_ident.cli import tuner
-from transplanter_ident.config.parameters import EstimatorConfig
+from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions
 from transplanter_ident.config.params_file import EstimatorParams, load_params
 from transplanter_ident.epochs.assembler import AssemblerSettings, EpochAssembler, assemble
 from transplanter_ident.epochs.epoch import EpochArrays
@@ -30,9 +30,11 @@ from transplanter_ident.sim.signals import multisine_steering
 from transplanter_ident.sim.simulator import simulate
 from transplanter_ident.tuning.steering_scale import (
     pooled_scale_objective,
+    scale_objective,
     scaled_epochs,
     search_steering_scale,
     with_std,
+    without_gain_state,
 )
 
 TOLERANCE = 0.005  # relative
@@ -124,3 +126,12 @@ def test_cli_refuses_the_search_for_a_sensor_on_one_wheel(tmp_path: Path, capsys
     assert tuner.main([str(bag), "-o", str(out), "--params-file", str(params_file), "--estimate-steering-scale",
                        "--no-epoch-cache", "--jobs", "1"]) != 0
     assert "steering_sensor_wheel: center" in capsys.readouterr().err and not out.exists()
+
+
+def test_the_search_runs_without_the_gain_state() -> None:
+    """With ekf.estimate_steering_gain the objective is the one without it (the state would take up the factor)."""
+    bag = epochs_of(simulate(sine_drive(0, duration=40.0, steering_scale=1.02)))
+    with_state = replace(EstimatorConfig(), options=FilterOptions(estimate_steering_gain=True))
+    for factor in (0.97, 1.0):
+        assert scale_objective(bag, with_state, factor, "nll") == scale_objective(bag, EstimatorConfig(), factor, "nll")
+    assert without_gain_state(with_state).options == FilterOptions()

@@ -56,6 +56,13 @@ def scaled_epochs(epochs: EpochArrays, factor: float) -> EpochArrays:
     return EpochArrays.from_rows(rows)
 
 
+def without_gain_state(config: EstimatorConfig) -> EstimatorConfig:
+    """``config`` with the steering gain's error not a filter state (the scale search's objective)."""
+    if not config.options.estimate_steering_gain:
+        return config
+    return replace(config, options=replace(config.options, estimate_steering_gain=False))
+
+
 def with_steering_scale(params: EstimatorParams, scale: float) -> EstimatorParams:
     """The parameters with ``vehicle.steering_scale`` = ``scale``."""
     config = params.config
@@ -64,9 +71,13 @@ def with_steering_scale(params: EstimatorParams, scale: float) -> EstimatorParam
 
 def scale_objective(epochs: EpochArrays, config: EstimatorConfig, factor: float, objective: str,
                     tune_stiffness_noise: bool = False) -> tuple[float, int]:
-    """(objective at the starting Q/R, epoch count) of one bag's epochs with the steering x ``factor``."""
+    """(objective at the starting Q/R, epoch count) of one bag's epochs with the steering x ``factor``.
+
+    Without the gain state (``ekf.estimate_steering_gain``): the filter's g would take up the factor searched.
+    """
     if len(epochs) < MIN_DELAY_EPOCHS:
         return math.inf, len(epochs)
+    config = without_gain_state(config)
     scaled = scaled_epochs(epochs, factor)
     problem = TuningProblem.from_epochs(warm_start(config, scaled), scaled, objective, tune_stiffness_noise)
     return float(problem(problem.start[None, :])[0]), len(epochs)
