@@ -1,8 +1,9 @@
 """Joint-state EKF over the motion states, the cornering stiffness and the steering offset (paper eqs. 9-14, 21).
 
-State: [vy, r, psi, theta_f, theta_r, b, h] with z = [vy_antenna, psi] (``heading``, the default) or
-[vy, r, theta_f, theta_r, b, h] with z = [vy_antenna, r] (``yaw_rate``, the paper's eq. 11). theta is
-ln C (``log``) or C (``linear``); b is the steering-sensor offset (wheel angle = sensor - b); h the
+State: [vy, r, psi, theta_f, theta_r, b, g, h] with z = [vy_antenna, psi] (``heading``, the default) or
+[vy, r, theta_f, theta_r, b, g, h] with z = [vy_antenna, r] (``yaw_rate``, the paper's eq. 11). theta is
+ln C (``log``) or C (``linear``); b is the steering-sensor offset and g its gain's error left out of
+``vehicle.steering_scale`` (wheel angle = (1 + g) sensor - b; ``ekf.estimate_steering_gain``, else fixed at 0); h the
 heading's misalignment with the vehicle left out of ``vehicle.heading_offset``. The prediction
 (:mod:`.prediction`) uses :func:`model.discretize` (eq. 10 or exact ZOH, Jacobian eq. 13 with the A23
 erratum fixed) driven by the steering ramp minus b. The measurement holds the lever arm and h,
@@ -150,7 +151,7 @@ def _finite(value):
 def make_kernels(heading, lagged=False):
     """Compile predict/step/run/objective for one measurement mode (sizes become compile-time constants).
 
-    ``heading``: n = 7 states, z = [vy_antenna, psi]; else n = 6, z = [vy_antenna, r]. ``lagged``: the
+    ``heading``: n = 8 states, z = [vy_antenna, psi]; else n = 7, z = [vy_antenna, r]. ``lagged``: the
     tires relax (vehicle.relaxation_length > 0), and the slip lags d_f, d_r follow the motion states
     (n + N_LAG). The small loops unroll; all scratch lives in one work buffer indexed by slot (no
     per-step allocation).
