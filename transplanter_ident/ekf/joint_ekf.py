@@ -264,14 +264,13 @@ class JointEKF:
 
     def restore(self, learned: LearnedState) -> None:
         """Start from saved parameter states (after :meth:`reset`); a fixed offset or gain stays as configured."""
-        self.state[X_THETA_F], self.state[X_THETA_R] = learned.theta
+        options = self._config.options
+        estimated = (True, True, options.estimate_steering_offset, options.estimate_steering_gain)
+        values = (*learned.theta, learned.offset, learned.gain)  # in PARAMETER_STATES' order
         block = np.array(learned.covariance, dtype=np.float64)
-        for k, (index, estimated, value) in enumerate(zip(
-                PARAMETER_STATES, (True, True, self._config.options.estimate_steering_offset,
-                                   self._config.options.estimate_steering_gain),
-                (*learned.theta, learned.offset, learned.gain), strict=True)):
-            if estimated:
-                self.state[index] = value
+        for k, index in enumerate(PARAMETER_STATES):
+            if estimated[k]:
+                self.state[index] = values[k]
             else:
                 block[k, :] = block[:, k] = 0.0
         index = np.ix_(PARAMETER_STATES, PARAMETER_STATES)
