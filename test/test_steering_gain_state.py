@@ -7,7 +7,9 @@ band holds what the data leave of it: at 2 m/s g is pinned to about 0.35 % after
 drive, seeds 0-5, from 30 s on (``ekf.steering_gain_initial_variance`` 4e-4, 2 %): sensor 1 % high valid
 in 28 % of the epochs, 0 of them outside +-2 sigma, final |error| median 2.2 %; 1 % low 38 %, 0, 2.4 %;
 the final g within 1.8 std of the truth on every drive. The Cramer-Rao bound of g on such a drive is
-0.27 % (robustness.md): the filter is near it. Default off (README, "What the estimate takes
+0.27 % (robustness.md): the filter is near it. Over a drive whose speed varies (1-3 m/s) the understeer,
+~vx^2, sets the stiffness apart from a gain: there the state costs no availability and a GNSS delay left
+out is still never valid. Default off (README, "What the estimate takes
 on trust").
 """
 
@@ -83,3 +85,25 @@ def test_left_out_the_state_stays_at_zero() -> None:
     assert np.all(rows[:, O_STEERING_GAIN] == 0.0) and np.all(rows[:, O_STEERING_GAIN_STD] == 0.0)
     on = run_drive(simulate(sine_drive(0, duration=30.0)), replace(DEFAULT, options=ESTIMATED.options)).outputs
     assert np.any(on[:, O_STEERING_GAIN_STD] > 0.0)  # the test has teeth: on, the state moves
+
+
+def _varying_speed(t: np.ndarray) -> np.ndarray:
+    """1-3 m/s, a 30 s sine (the sweep's "speed 1-3 m/s" row): the understeer, ~vx^2, sets the stiffness apart."""
+    return 2.0 + np.sin(2.0 * np.pi * t / 30.0)
+
+
+def test_with_a_varying_speed_the_state_costs_nothing_and_still_sees_a_delay() -> None:
+    """Speed 1-3 m/s, 180 s, seeds 0-5: the state takes a gain error and still leaves a delay to the validity.
+
+    A 1 % gain error with the state: valid >= 80 % (92 % measured), <= 5 % of it outside +-2 sigma (0), median
+    |error| <= 3 % (1.2 %), as the calibrated drive without the state (90 %, 0). A GNSS 10 ms late, left out:
+    <= 5 % valid (never), unlike at a constant speed (56 %, all outside; robustness.md).
+    """
+    drive = {"speed_profile": _varying_speed, "duration": 180.0}
+    gain_error = [simulate(sine_drive(seed, steering_scale=1.01, **drive)) for seed in SEEDS]
+    figures, _ = _figures(gain_error, ESTIMATED)
+    assert figures.valid >= 0.80 and figures.missed <= 0.05 and figures.median <= 0.03, figures
+    late = [simulate(sine_drive(seed, gnss_delay=0.01, **drive)) for seed in SEEDS]
+    figures, _ = _figures(late, ESTIMATED)
+    assert figures.valid <= 0.05, figures
+
