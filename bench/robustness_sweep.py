@@ -60,6 +60,8 @@ DEG = math.radians
 NOISE = SensorNoise()
 FIELD_STEERING, FIELD_SPEED = field_work()  # rows at 2 m/s, +-2 deg; U-turns at 1.2 m/s, 30 deg
 SLOW_FIELD_STEERING, SLOW_FIELD_SPEED = field_work(row_speed=1.2, turn_speed=0.7)
+#: speed 1-3 m/s (a 30 s sine), 180 s
+VARYING_SPEED = {"speed_profile": lambda t: 2.0 + np.sin(2.0 * np.pi * t / 30.0), "duration": 180.0}
 ROWS: dict[str, dict[str, object]] = {
     "clean": {},
     "1 m/s": {"speed": 1.0},
@@ -68,8 +70,12 @@ ROWS: dict[str, dict[str, object]] = {
     "1.2 m/s, 180 s": {"speed": 1.2, "duration": 180.0},
     "1.5 m/s, 180 s": {"speed": 1.5, "duration": 180.0},
     "speed 1.5-2.5 m/s (a 20 s sine)": {"speed_profile": lambda t: 2.0 + 0.5 * np.sin(2.0 * np.pi * t / 20.0)},
-    "speed 1-3 m/s (a 30 s sine), 180 s": {"speed_profile": lambda t: 2.0 + np.sin(2.0 * np.pi * t / 30.0),
-                                            "duration": 180.0},
+    "speed 1-3 m/s (a 30 s sine), 180 s": VARYING_SPEED,
+    # the steering gain state's rows (session 35, with --option estimate_steering_gain=true): a varying speed sets a
+    # gain apart from the stiffness and from a delay
+    "speed 1-3 m/s, 180 s, steering gain +1 %": {**VARYING_SPEED, "steering_scale": 1.01},
+    "speed 1-3 m/s, 180 s, GNSS 5 ms late, unset": {**VARYING_SPEED, "gnss_delay": 0.005},
+    "speed 1-3 m/s, 180 s, GNSS 10 ms late, unset": {**VARYING_SPEED, "gnss_delay": 0.01},
     "2 m/s slowing to 0.2 m/s for 10 s every 40 s, 180 s": {  # the simulator cannot stop (eq. 3 at vx = 0)
         "speed_profile": lambda t: 0.2 + 1.8 * np.clip((30.0 - np.mod(t, 40.0)) / 2.0, 0.0, 1.0)
         * np.clip(np.mod(t, 40.0) / 2.0, 0.0, 1.0), "duration": 180.0},
