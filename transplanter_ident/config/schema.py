@@ -184,8 +184,9 @@ SCHEMA: tuple[Param, ...] = (
            "used from the next ~/reset)", 0.0, 1.0, read_only=False),
     _bool("ekf.estimate_steering_gain", False, "estimate the steering sensor's gain error g left out of "
           "vehicle.steering_scale as a filter state (wheel angle = (1 + g) sensor - offset); at a constant speed only "
-          "with gnss.delay and vehicle.steering_play calibrated (a delay or a play left out reads as a gain, and the "
-          "validity no longer sees it); a varying speed sets them apart"),
+          "with gnss.delay and vehicle.steering_play calibrated and a steady surface (a delay or a play left out "
+          "reads as a gain, and the validity no longer sees it; a surface change is missed more often); a varying "
+          "speed sets them apart"),
     _float("ekf.steering_gain_process_noise", 1.0e-9, "1/s", "Q density of the steering gain's error",
            0.0, MAX_NOISE, read_only=False),
     _float("ekf.steering_gain_initial_variance", 4.0e-4, "1", "P0 of the steering gain's error (2 % 1-sigma; "
