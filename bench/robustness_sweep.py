@@ -190,6 +190,10 @@ ROWS: dict[str, dict[str, object]] = {
     "stiffness drifting -30 % from 30 to 180 s": {"duration": 180.0, "stiffness": drift(-0.3, 30.0, 180.0)},
     "stiffness drifting +30 % from 30 to 180 s": {"duration": 180.0, "stiffness": drift(0.3, 30.0, 180.0)},
     "stiffness drifting -20 % from 30 to 180 s": {"duration": 180.0, "stiffness": drift(-0.2, 30.0, 180.0)},
+    "stiffness ramp +30 % over 40 s from 75 s, 180 s": {"duration": 180.0, "stiffness": drift(0.3, 75.0, 115.0)},
+    "stiffness ramp +30 % over 60 s from 75 s, 180 s": {"duration": 180.0, "stiffness": drift(0.3, 75.0, 135.0)},
+    "stiffness ramp -20 % over 60 s from 75 s, 180 s": {"duration": 180.0, "stiffness": drift(-0.2, 75.0, 135.0)},
+    "stiffness ramp -40 % over 60 s from 75 s, 180 s": {"duration": 180.0, "stiffness": drift(-0.4, 75.0, 135.0)},
     "stiffness drifting -20 % over 4.5 min, 1.5 m/s": {"duration": 300.0, "speed": 1.5,
                                                        "stiffness": drift(-0.2, 30.0, 300.0)},
 }

@@ -6,7 +6,9 @@ identification drive with both stiffnesses drifting 40 % down over 4 min, the es
 behind while valid in 92 % of the epochs after 30 s, 38 % of those outside +-2 sigma (10 seeds;
 ``bench/robustness_sweep.py "stiffness drifting -40 % over 4 min"`` with ``--validity drift_window=0``).
 The drift test sums the normalised stiffness updates (layout.O_UPDATE_F/R) over
-``validity.drift_window`` and calls that drift when they keep pushing one way.
+``validity.drift_window`` and calls that drift when they keep pushing one way. A surface that changes
+over a minute, too slowly for the step's change test, is the filter's slow change test's
+(``ekf.change_ramp_shift``, ekf/change.py): its alarm lets the estimate catch up.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import numpy as np
 from drives import LATE_DROP, Run, drift, judged_figures, run_drive, sine_drive
 from test_validity import CONFIG, SETTINGS, epochs_of
 
-from transplanter_ident.config.parameters import FilterOptions, ValiditySettings
+from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, ValiditySettings
 from transplanter_ident.ekf.layout import O_CHANGE, O_STATUS, O_UPDATE_F, O_UPDATE_R, StepStatus
 from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.evaluation.validity import decide_sequence, monitor_for, sample_of
@@ -26,42 +28,78 @@ from transplanter_ident.sim.simulator import simulate
 
 SEEDS = range(8)
 DRIFT = {"duration": 240.0, "stiffness": drift(-0.4, 1.0, 240.0)}
+#: a surface changing over a minute: both stiffnesses +30 % (firmer) or -20 % (wetter) from 75 to 135 s
+RAMPS = {"ramp up": {"duration": 180.0, "stiffness": drift(0.3, 75.0, 135.0)},
+         "ramp down": {"duration": 180.0, "stiffness": drift(-0.2, 75.0, 135.0)}}
 OFF = dataclasses.replace(SETTINGS, drift_window=0.0)
 
 
+#: the filter without the slow change's test (ekf.change_ramp_shift 0), whose alarms catch part of a drift
+STEP_TEST_ONLY = dataclasses.replace(CONFIG, options=FilterOptions(change_ramp_shift=0.0))
+
+
 @functools.cache
-def runs(name: str) -> tuple[tuple[Run, EpochArrays], ...]:
-    overrides = {"drift": DRIFT, "clean": {}, "drop": {"duration": 150.0, "stiffness": LATE_DROP}}[name]
+def runs(name: str, config: EstimatorConfig = CONFIG) -> tuple[tuple[Run, EpochArrays], ...]:
+    overrides = {"drift": DRIFT, "clean": {}, "drop": {"duration": 150.0, "stiffness": LATE_DROP}, **RAMPS}[name]
     out = []
     for seed in SEEDS:
         result = simulate(sine_drive(seed, **overrides))
-        out.append((run_drive(result), epochs_of(result)))
+        out.append((run_drive(result, config), epochs_of(result)))
     return tuple(out)
 
 
-def missed_and_valid(name: str, settings: ValiditySettings) -> tuple[float, float]:
+def missed_and_valid(name: str, settings: ValiditySettings, config: EstimatorConfig = CONFIG) -> tuple[float, float]:
     """(share of the valid epochs after 30 s that +-2 sigma misses (Cf or Cr), valid share after 30 s), pooled."""
-    figures = judged_figures((run, decide_sequence(CONFIG, settings, epochs, run.outputs)) for run, epochs in runs(name))
+    figures = judged_figures((run, decide_sequence(config, settings, epochs, run.outputs))
+                             for run, epochs in runs(name, config))
     return figures.missed, figures.valid
 
 
 def test_a_drifting_stiffness_is_flagged_and_named() -> None:
     """-40 % over 4 min at 2 m/s, 8 seeds: the band misses less, and the reason says why.
 
-    Required: in <= 15 % of the valid epochs after 30 s and <= 1/3 of what it missed without the test
-    (measured 9.7 % against 39.3 %; valid 30 % against 92 %). 15 % is what the test achieves, not what
-    a band promises (~5-9 %): the bench's drift rows stay bold in the README, and raising the stiffness
-    random walk is the user's lever.
+    The filter without the slow change's test (whose alarms catch part of the drift): in <= 15 % of the
+    valid epochs after 30 s and <= 1/3 of what it missed without the drift test (measured 10.9 % against
+    45.4 %; valid 28 % against 85 %). With the defaults (both): <= 15 % (measured 11.9 %, 18.2 % without
+    the drift test). 15 % is what the tests achieve, not what a band promises (~5-9 %): the bench's
+    drift rows stay bold in the README, and raising the stiffness random walk is the user's lever.
     """
-    with_test, valid_with = missed_and_valid("drift", SETTINGS)
-    without, valid_without = missed_and_valid("drift", OFF)
+    with_test, valid_with = missed_and_valid("drift", SETTINGS, STEP_TEST_ONLY)
+    without, valid_without = missed_and_valid("drift", OFF, STEP_TEST_ONLY)
     assert without >= 0.3, without  # the drive shows the failure the test is for
     assert with_test <= 0.15 and with_test <= without / 3.0, (with_test, without)
     assert valid_with < valid_without
-    run, epochs = runs("drift")[0]
-    monitor = monitor_for(CONFIG, SETTINGS)
+    defaults, _ = missed_and_valid("drift", SETTINGS)
+    assert defaults <= 0.15, defaults
+    run, epochs = runs("drift", STEP_TEST_ONLY)[0]
+    monitor = monitor_for(STEP_TEST_ONLY, SETTINGS)
     reasons = {r for i in range(len(epochs)) for r in monitor.step(sample_of(epochs[i], run.outputs[i])).reasons}
     assert any("keeps moving down" in r and "ekf.process_noise" in r for r in reasons), reasons
+
+
+def final_errors(name: str, config: EstimatorConfig) -> np.ndarray:
+    """Per seed, the worse of Cf's and Cr's |relative error| at the drive's end."""
+    return np.array([max(abs(e) for e in run.final_errors()) for run, _ in runs(name, config)])
+
+
+def test_a_surface_changing_over_a_minute_raises_the_slow_change_alarm() -> None:
+    """+30 % and -20 % over 60 s from 75 s (180 s drives, 8 seeds): the slow change's test catches the lag.
+
+    The step's test alone lets the estimate lag by several std (its updates push by ~0.3 std each: no
+    alarm) while valid. Required, pooled over the seeds, the valid epochs after 30 s outside +-2 sigma:
+    with the slow change's test <= 18 % and <= 0.6 x without it (measured: up 14.8 % against 28.6 %,
+    down 8.2 % against 20.7 %; without it >= 15 %, the failure shown); an alarm after 75 s on >= 6 of the
+    8 drives; and the median final error at most half of the step test's alone.
+    """
+    for name in RAMPS:
+        with_ramp, _ = missed_and_valid(name, SETTINGS)
+        step_only, _ = missed_and_valid(name, SETTINGS, STEP_TEST_ONLY)
+        assert step_only >= 0.15, (name, step_only)
+        assert with_ramp <= 0.18 and with_ramp <= 0.6 * step_only, (name, with_ramp, step_only)
+        alarmed = sum(bool(np.any((run.outputs[:, O_CHANGE] > 0.0) & (run.t > 75.0))) for run, _ in runs(name))
+        assert alarmed >= 6, (name, alarmed)
+        finals, finals_step_only = final_errors(name, CONFIG), final_errors(name, STEP_TEST_ONLY)
+        assert np.median(finals) <= 0.5 * np.median(finals_step_only), (name, finals, finals_step_only)
 
 
 def test_steady_and_stepping_stiffness_lose_nothing() -> None:

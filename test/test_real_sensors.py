@@ -143,7 +143,7 @@ def test_a_drop_is_seen_through_noisier_sensors_whose_r_is_set() -> None:
 
 def test_the_variance_test_alone_missed_the_drop_through_noisier_sensors() -> None:
     """The teeth of the test above: without the directional test (its threshold out of reach), a final error > 10 %."""
-    _, _, worst = noisy_drop_figures(FilterOptions(change_shift_threshold=1.0e9))
+    _, _, worst = noisy_drop_figures(FilterOptions(change_shift_threshold=1.0e9, change_ramp_shift=0.0))
     assert worst > 0.10, worst
 
 

@@ -105,6 +105,8 @@ class FilterOptions:
     change_threshold: float = 8.0  # CUSUM alarm level (log-likelihood ratio)
     change_shift: float = 0.7  # mean of the normalised stiffness updates (in their std) the directional test looks for
     change_shift_threshold: float = 10.0  # its CUSUM alarm level (log-likelihood ratio)
+    change_ramp_shift: float = 0.3  # the same test for a slow change (a surface changing over a minute); 0: off
+    change_ramp_threshold: float = 8.0  # its CUSUM alarm level (log-likelihood ratio)
     change_process_noise: float = 2.0e-2  # stiffness Q density after an alarm, (ln C)^2/s
     change_hold: float = 4.0  # s the raised density lasts after an alarm
     change_offset_variance: float = 3.0e-4  # rad^2 the steering offset may have moved by at an alarm (~1 deg)^2
@@ -153,10 +155,12 @@ class FilterOptions:
             raise ValueError(f"ekf.max_noise_scale must be >= 1, got {self.max_noise_scale!r}")
         if not (math.isfinite(self.change_scale) and self.change_scale > 1.0):
             raise ValueError(f"ekf.change_scale must be > 1, got {self.change_scale!r}")
-        for name in ("change_threshold", "change_shift", "change_shift_threshold"):
+        for name in ("change_threshold", "change_shift", "change_shift_threshold", "change_ramp_threshold"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"ekf.{name} must be > 0, got {value!r}")
+        if not (math.isfinite(self.change_ramp_shift) and self.change_ramp_shift >= 0.0):
+            raise ValueError(f"ekf.change_ramp_shift must be >= 0, got {self.change_ramp_shift!r}")
 
     @property
     def heading_state(self) -> bool:

@@ -273,6 +273,10 @@ SCHEMA: tuple[Param, ...] = (
     _float("ekf.change_shift", 0.7, "", "the directional change test: mean, in their std, of the stiffness updates "
            "it looks for (a surface change pushes them one way; the variance test alone missed drops)", 0.05, 10.0),
     _float("ekf.change_shift_threshold", 10.0, "", "its CUSUM alarm level (log-likelihood ratio)", 1.0, 1000.0),
+    _float("ekf.change_ramp_shift", 0.3, "", "the same test for a slow change: a surface that changes over a "
+           "minute, too slowly for ekf.change_shift, lets the estimate lag by several std while each update pushes "
+           "it by a fraction of one (its alarm raises the stiffness Q as a step's does); 0: off", 0.0, 10.0),
+    _float("ekf.change_ramp_threshold", 8.0, "", "its CUSUM alarm level (log-likelihood ratio)", 1.0, 1000.0),
     _float("ekf.change_process_noise", 2.0e-2, "(ln C)^2/s", "stiffness Q density (relative) for change_hold "
            "after a change alarm", 1.0e-8, 10.0),
     _float("ekf.change_hold", 4.0, "s", "how long the raised stiffness Q lasts after a change alarm", 0.01, 600.0),

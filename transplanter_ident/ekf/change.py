@@ -13,6 +13,10 @@
   the updates so too (lag-1 correlation rho ~0.6 at 0.5 s), and sums of them grow faster than the
   test assumes: each u is scaled by sqrt((1 - rho) / (1 + rho)), the long-run std of an AR(1) series,
   with rho = E[u_k u_k-1] / E[u^2] measured over ``ekf.noise_memory`` (uncentred, from 0 and 1).
+  A second pair per stiffness tests a smaller shift, ``ekf.change_ramp_shift``, to its own alarm level
+  ``ekf.change_ramp_threshold``: a surface that changes over a minute lets the estimate lag by several
+  std while each update pushes it by only ~0.3 of its std, which the step's shift never sums to an alarm
+  (a 30 % rise over 60 s at 2 m/s: up to 13 % behind for a minute, valid meanwhile in a third of the epochs).
 
 Either sum past its threshold is an alarm: for ``change_hold`` s the stiffness random walk runs at
 ``change_process_noise``, so the estimate moves to the new surface over several epochs rather than
@@ -52,6 +56,8 @@ from transplanter_ident.ekf.layout import (
     S_CUSUM_SCALE,
     S_CUSUM_THRESHOLD,
     S_NOISE_MEMORY,
+    S_RAMP_SHIFT,
+    S_RAMP_THRESHOLD,
     S_SHIFT,
     S_SHIFT_THRESHOLD,
 )
@@ -81,18 +87,28 @@ def decorrelated(memo, k, u, weight):
 
 
 @inline_kernel
+def shift_test(settings, k):
+    """Test k's (0: the step's, 1: the slow change's) shift delta and alarm level (delta 0: the test is off)."""
+    if k == 0:
+        return settings[S_SHIFT], settings[S_SHIFT_THRESHOLD]
+    return settings[S_RAMP_SHIFT], settings[S_RAMP_THRESHOLD]
+
+
+@inline_kernel
 def shift_alarm(memo, settings, dt, u_f, u_r, out):
-    """Add this epoch's updates to the directional CUSUMs; True if one passed ``change_shift_threshold``.
+    """Add this epoch's updates to the directional CUSUMs; True if one passed its test's alarm level.
 
     The decorrelated updates go to out[O_UPDATE_F], out[O_UPDATE_R].
     """
-    delta, threshold = settings[S_SHIFT], settings[S_SHIFT_THRESHOLD]
     weight = min(1.0, dt / settings[S_NOISE_MEMORY])
     scaled_f, scaled_r = decorrelated(memo, 0, u_f, weight), decorrelated(memo, 1, u_r, weight)
     out[O_UPDATE_F], out[O_UPDATE_R] = scaled_f, scaled_r
     alarm = False
-    for i in range(N_SHIFT):  # Cf up, Cf down, Cr up, Cr down
-        u = scaled_f if i < 2 else scaled_r
+    for i in range(N_SHIFT):  # per test: Cf up, Cf down, Cr up, Cr down
+        delta, threshold = shift_test(settings, i // 4)
+        if delta <= 0.0:
+            continue
+        u = scaled_f if i % 4 < 2 else scaled_r
         if i % 2 == 1:
             u = -u
         g = max(0.0, memo[M_SHIFT + i] + min(delta * (u - 0.5 * delta), 0.5 * threshold))
@@ -103,11 +119,11 @@ def shift_alarm(memo, settings, dt, u_f, u_r, out):
 
 @inline_kernel
 def write_change_evidence(memo, settings, out):
-    """out[O_CHANGE_EVIDENCE]: the directional test's largest CUSUM as a fraction of its alarm level."""
+    """out[O_CHANGE_EVIDENCE]: the directional tests' largest CUSUM as a fraction of its test's alarm level."""
     largest = 0.0
     for i in range(N_SHIFT):
-        largest = max(largest, memo[M_SHIFT + i])
-    out[O_CHANGE_EVIDENCE] = largest / settings[S_SHIFT_THRESHOLD]
+        largest = max(largest, memo[M_SHIFT + i] / shift_test(settings, i // 4)[1])
+    out[O_CHANGE_EVIDENCE] = largest
 
 
 @inline_kernel

@@ -76,6 +76,8 @@ from transplanter_ident.ekf.layout import (
     S_P0_VY,
     S_PLAY_UNCERTAINTY,
     S_R_FROM_COVARIANCE,
+    S_RAMP_SHIFT,
+    S_RAMP_THRESHOLD,
     S_RELAXATION_UNCERTAINTY,
     S_ROLL_LEVER,
     S_SATURATION_CORRECTION,
@@ -150,6 +152,8 @@ class FilterArrays:
         settings[S_CHANGE_Q] = options.change_process_noise
         settings[S_SHIFT] = options.change_shift
         settings[S_SHIFT_THRESHOLD] = options.change_shift_threshold
+        settings[S_RAMP_SHIFT] = options.change_ramp_shift
+        settings[S_RAMP_THRESHOLD] = options.change_ramp_threshold
         settings[S_CHANGE_HOLD] = options.change_hold
         settings[S_CHANGE_OFFSET_Q] = options.change_offset_variance / options.change_hold
         settings[S_LINEAR_RANGE] = 1.0 if options.linear_range_check else 0.0

@@ -73,7 +73,8 @@ S_P0_HEADING_OFFSET = 45  # rad^2: P0 of the heading's misalignment h (0: not es
 S_PLAY_UNCERTAINTY = 46  # rad, 1-sigma of the steering play left out of vehicle.steering_play (play_signature.py)
 S_ROLL_LEVER = 47  # s^2, the antenna's sideways travel per m/s^2 of lateral acceleration (measurement_row.roll_velocity)
 S_P0_STEERING_GAIN = 48  # P0 of the steering gain's error g (0: not estimated, recovery.py re-initialises to it)
-N_SETTINGS = 49
+S_RAMP_SHIFT, S_RAMP_THRESHOLD = 49, 50  # the slow change test's shift (in std; 0: off) and alarm level (change.py)
+N_SETTINGS = 51
 
 # output row (one per epoch)
 O_STATUS, O_VY, O_R, O_CF, O_CR, O_CF_STD, O_CR_STD = 0, 1, 2, 3, 4, 5, 6
@@ -96,7 +97,8 @@ O_RELAXATION, O_RELAXATION_STD, O_RELAXATION_SENS_F, O_RELAXATION_SENS_R = 39, 4
 O_SCALE_ESTIMATE, O_SCALE_ESTIMATE_STD = 43, 44  # the steering gain left out as the innovations show it (std 0: none)
 #: the lag-1 autocorrelation of each measurement's normalised innovations that widens its R (noise_correlation.py)
 O_NOISE_CORRELATION_VY, O_NOISE_CORRELATION_SECOND = 45, 46
-#: the directional change test's largest CUSUM over ekf.change_shift_threshold: 0, up to 1 at an alarm (change.py);
+#: the directional change tests' largest CUSUM over its alarm level (ekf.change_shift_threshold or
+#: ekf.change_ramp_threshold): 0, up to 1 at an alarm (change.py);
 #: the validity's "change suspected" check reads it
 O_CHANGE_EVIDENCE = 47
 #: rad: a heading misaligned with the vehicle beyond vehicle.heading_offset as the innovations show it (std 0: none
@@ -135,10 +137,12 @@ M_LAG_SPEED = M_LAG_ACTIVE + 1  # m/s, the speed the slip lags were last predict
 #: memo[M_SPEED_CROSS + i]: Cov(error of state i, error of the last GNSS speed sample), which the next
 #: interval's speed shares (update.add_speed_noise)
 M_SPEED_CROSS = M_LAG_SPEED + 1
-#: the directional change test (change.py): its CUSUMs (Cf up, Cf down, Cr up, Cr down), then per
-#: stiffness the normalised updates' mean square minus 1, their lag-1 mean product, and the last one
+#: the directional change tests (change.py): their CUSUMs (Cf up, Cf down, Cr up, Cr down: the step's, then the
+#: slow change's), then per stiffness the normalised updates' mean square minus 1, their lag-1 mean product, and
+#: the last one
 M_SHIFT = M_SPEED_CROSS + MAX_STATES
-N_SHIFT = 4
+N_SHIFT_TESTS = 2  # the step's (ekf.change_shift) and the slow change's (ekf.change_ramp_shift)
+N_SHIFT = 4 * N_SHIFT_TESTS
 M_SHIFT_POWER, M_SHIFT_LAG, M_SHIFT_LAST = M_SHIFT + N_SHIFT, M_SHIFT + N_SHIFT + 2, M_SHIFT + N_SHIFT + 4
 #: memo[M_INERTIA_BIAS + i]: the bias of state i per unit of ln Iz left out of vehicle.iz (adaptation.py)
 M_INERTIA_BIAS = M_SHIFT_LAST + 2
