@@ -363,8 +363,9 @@ SCHEMA: tuple[Param, ...] = (
     _float("validity.max_drift_sigmas", 2.5, "", "the sum of those updates, each normalised by its std (N(0, 1) "
            "while the stiffness holds still), beyond this many sqrt(n) makes the estimate invalid: the stiffness "
            "drifts faster than ekf.process_noise lets it follow, and its band lags", 0.1, 100.0, read_only=False),
-    _float("validity.max_change_evidence", 0.5, "", "the directional change test's CUSUM (ekf.change_shift) past "
-           "this fraction of ekf.change_shift_threshold makes the estimate invalid until the alarm or until it falls "
+    _float("validity.max_change_evidence", 0.5, "", "a directional change test's CUSUM (ekf.change_shift, or the "
+           "slow change's ekf.change_ramp_shift) past this fraction of its alarm level (ekf.change_shift_threshold, "
+           "ekf.change_ramp_threshold) makes the estimate invalid until the alarm or until it falls "
            "back (/diagnostics change_evidence): a new surface is suspected, and the estimate lags it by more than "
            "its band while the test gathers the rest (a 30 % rise: 11 -> 5 % of the valid epochs outside +-2 sigma); "
            "1: off", 0.01, 1.0, read_only=False),
