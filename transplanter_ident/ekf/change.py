@@ -46,6 +46,7 @@ from transplanter_ident.ekf.layout import (
     M_SHIFT_LAST,
     M_SHIFT_POWER,
     N_SHIFT,
+    N_SHIFT_SUMS,
     O_CHANGE,
     O_CHANGE_EVIDENCE,
     O_CUSUM,
@@ -105,10 +106,10 @@ def shift_alarm(memo, settings, dt, u_f, u_r, out):
     out[O_UPDATE_F], out[O_UPDATE_R] = scaled_f, scaled_r
     alarm = False
     for i in range(N_SHIFT):  # per test: Cf up, Cf down, Cr up, Cr down
-        delta, threshold = shift_test(settings, i // 4)
+        delta, threshold = shift_test(settings, i // N_SHIFT_SUMS)
         if delta <= 0.0:
             continue
-        u = scaled_f if i % 4 < 2 else scaled_r
+        u = scaled_f if i % N_SHIFT_SUMS < 2 else scaled_r
         if i % 2 == 1:
             u = -u
         g = max(0.0, memo[M_SHIFT + i] + min(delta * (u - 0.5 * delta), 0.5 * threshold))
@@ -122,7 +123,7 @@ def write_change_evidence(memo, settings, out):
     """out[O_CHANGE_EVIDENCE]: the directional tests' largest CUSUM as a fraction of its test's alarm level."""
     largest = 0.0
     for i in range(N_SHIFT):
-        largest = max(largest, memo[M_SHIFT + i] / shift_test(settings, i // 4)[1])
+        largest = max(largest, memo[M_SHIFT + i] / shift_test(settings, i // N_SHIFT_SUMS)[1])
     out[O_CHANGE_EVIDENCE] = largest
 
 

@@ -142,7 +142,8 @@ M_SPEED_CROSS = M_LAG_SPEED + 1
 #: the last one
 M_SHIFT = M_SPEED_CROSS + MAX_STATES
 N_SHIFT_TESTS = 2  # the step's (ekf.change_shift) and the slow change's (ekf.change_ramp_shift)
-N_SHIFT = 4 * N_SHIFT_TESTS
+N_SHIFT_SUMS = 4  # per test: Cf up, Cf down, Cr up, Cr down
+N_SHIFT = N_SHIFT_SUMS * N_SHIFT_TESTS
 M_SHIFT_POWER, M_SHIFT_LAG, M_SHIFT_LAST = M_SHIFT + N_SHIFT, M_SHIFT + N_SHIFT + 2, M_SHIFT + N_SHIFT + 4
 #: memo[M_INERTIA_BIAS + i]: the bias of state i per unit of ln Iz left out of vehicle.iz (adaptation.py)
 M_INERTIA_BIAS = M_SHIFT_LAST + 2
@@ -215,6 +216,8 @@ V_BACKUP_X, V_BACKUP_MODEL, V_NEW_X, V_NEW_MODEL, V_BIAS = 0, 1, 2, 3, 4
 V_SPEED_GAIN = 5  # d x_{k+1} / d vx over the interval (the speed input's noise in Q)
 V_SPEED_CROSS = 6  # F times memo[M_SPEED_CROSS:] (update.add_speed_noise)
 V_BACKUP_CHANGE = 7  # the change tests' sums before the step, memo[M_CUSUM] then memo[M_SHIFT:] (recovery.py)
+if 1 + N_SHIFT > WORK_SIZE:  # the kernels do not check bounds
+    raise ImportError(f"layout: the change tests' {1 + N_SHIFT} sums do not fit a work vector of {WORK_SIZE}")
 V_VY_ROW = 8  # this epoch's row of H for the vy measurement, ~[1, antenna_x, 0..., -vx] (measurement_row.predict_vy)
 # rows of ws[W_GAIN]
 G_K0, G_K1, G_HP0, G_HP1 = 0, 1, 2, 3
