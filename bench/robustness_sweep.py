@@ -30,6 +30,7 @@ from drives import (  # noqa: E402
     LATE_DROP,
     NOISY_GNSS,
     NOISY_GNSS_R,
+    VARYING_SPEED,
     drift,
     run_drive,
     sine_drive,
@@ -60,8 +61,6 @@ DEG = math.radians
 NOISE = SensorNoise()
 FIELD_STEERING, FIELD_SPEED = field_work()  # rows at 2 m/s, +-2 deg; U-turns at 1.2 m/s, 30 deg
 SLOW_FIELD_STEERING, SLOW_FIELD_SPEED = field_work(row_speed=1.2, turn_speed=0.7)
-#: speed 1-3 m/s (a 30 s sine), 180 s
-VARYING_SPEED = {"speed_profile": lambda t: 2.0 + np.sin(2.0 * np.pi * t / 30.0), "duration": 180.0}
 ROWS: dict[str, dict[str, object]] = {
     "clean": {},
     "1 m/s": {"speed": 1.0},

@@ -50,6 +50,15 @@ def drift(change: float, start: float, end: float) -> StiffnessSchedule:
                              rear=(TRUE_CR, (1.0 + change) * TRUE_CR), transition=end - start)
 
 
+def varying_speed(t: np.ndarray) -> np.ndarray:
+    """1-3 m/s, a 30 s sine: the understeer, ~vx^2, sets the stiffness apart from a steering gain or a delay."""
+    return 2.0 + np.sin(2.0 * np.pi * t / 30.0)
+
+
+#: the drive of 180 s at that speed (sine_drive overrides)
+VARYING_SPEED = {"speed_profile": varying_speed, "duration": 180.0}
+
+
 def with_body_roll(result: SimResult, gain: float, height: float) -> SimResult:
     """``result`` with the body rolling outward in turns, gain rad per m/s^2 of lateral acceleration (quasi-static).
 

@@ -10,15 +10,15 @@ the final g within 1.8 std of the truth on every drive. The Cramer-Rao bound of 
 0.27 % (robustness.md): the filter is near it. Over a drive whose speed varies (1-3 m/s) the understeer,
 ~vx^2, sets the stiffness apart from a gain: there the state costs no availability and a GNSS delay left
 out is still never valid. At a constant speed it takes a delay or a play left out for a gain, and misses a
-surface change more often (robustness.md's figures): hence off by default. Default off (README, "What the estimate takes
-on trust").
+surface change more often (robustness.md's figures): hence off by default (README, "What the estimate
+takes on trust").
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from drives import Run, ValidityFigures, judged_figures, run_drive, sine_drive
+from drives import VARYING_SPEED, Run, ValidityFigures, judged_figures, run_drive, sine_drive
 from test_validity import epochs_of
 
 from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, ValiditySettings
@@ -86,11 +86,6 @@ def test_left_out_the_state_stays_at_zero() -> None:
     assert np.any(on[:, O_STEERING_GAIN_STD] > 0.0)  # the test has teeth: on, the state moves
 
 
-def _varying_speed(t: np.ndarray) -> np.ndarray:
-    """1-3 m/s, a 30 s sine (the sweep's "speed 1-3 m/s" row): the understeer, ~vx^2, sets the stiffness apart."""
-    return 2.0 + np.sin(2.0 * np.pi * t / 30.0)
-
-
 def test_with_a_varying_speed_the_state_costs_nothing_and_still_sees_a_delay() -> None:
     """Speed 1-3 m/s, 180 s, seeds 0-5: the state takes a gain error and still leaves a delay to the validity.
 
@@ -98,11 +93,9 @@ def test_with_a_varying_speed_the_state_costs_nothing_and_still_sees_a_delay() -
     |error| <= 3 % (1.2 %), as the calibrated drive without the state (90 %, 0). A GNSS 10 ms late, left out:
     <= 5 % valid (never), unlike at a constant speed (56 %, all outside; robustness.md).
     """
-    drive = {"speed_profile": _varying_speed, "duration": 180.0}
-    gain_error = [simulate(sine_drive(seed, steering_scale=1.01, **drive)) for seed in SEEDS]
+    gain_error = [simulate(sine_drive(seed, steering_scale=1.01, **VARYING_SPEED)) for seed in SEEDS]
     figures, _ = _figures(gain_error, ESTIMATED)
     assert figures.valid >= 0.80 and figures.missed <= 0.05 and figures.median <= 0.03, figures
-    late = [simulate(sine_drive(seed, gnss_delay=0.01, **drive)) for seed in SEEDS]
+    late = [simulate(sine_drive(seed, gnss_delay=0.01, **VARYING_SPEED)) for seed in SEEDS]
     figures, _ = _figures(late, ESTIMATED)
     assert figures.valid <= 0.05, figures
-

@@ -16,7 +16,8 @@
   A second pair per stiffness tests a smaller shift, ``ekf.change_ramp_shift``, to its own alarm level
   ``ekf.change_ramp_threshold``: a surface that changes over a minute lets the estimate lag by several
   std while each update pushes it by only ~0.3 of its std, which the step's shift never sums to an alarm
-  (a 30 % rise over 60 s at 2 m/s: up to 13 % behind for a minute, valid meanwhile in a third of the epochs).
+  (a 30 % rise over 60 s at 2 m/s: up to 13 % behind for a minute, 29 % of the valid epochs outside +-2 sigma
+  without this test; docs/real_sensors.md, *A slow change*).
 
 Either sum past its threshold is an alarm: for ``change_hold`` s the stiffness random walk runs at
 ``change_process_noise``, so the estimate moves to the new surface over several epochs rather than
