@@ -17,7 +17,8 @@ so it is the C's 4-state filter; psi (the integral of r) is only used by the ext
 default ``heading`` mode (5 states, z = [vy, psi]). The innovation gate is opened (threshold
 1e12) so every step does the full update, as the C does.
 
-Rows: euler/linear (eq. 10, the paper's model), exact/log (the default model), and extra
+Rows: euler/linear (eq. 10, the paper's model; with the package's defaults, and with
+``config/paper.py``'s options, none of its additions, as in the C), exact/log (the default model), and extra
 exact/log/heading (the default measurement), the same with relaxing tires (``vehicle.relaxation_length``:
 two more states, a larger matrix exponential; the lags start once the stiffness is known, as they
 do on this sequence), a single antenna (``measurement: course``: psi taken as the course, one more
@@ -39,7 +40,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +48,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from transplanter_ident.config.paper import PAPER_OPTIONS  # noqa: E402
 from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, NoiseParams, VehicleParams  # noqa: E402
 from transplanter_ident.ekf import entries, joint_ekf, layout  # noqa: E402
 from transplanter_ident.tuning.problem import batch_objective  # noqa: E402
@@ -66,10 +68,12 @@ class Case:
     measurement: str
     reference: str | None  # C model to compare with
     relaxation: float = 0.0  # m, vehicle.relaxation_length (the slip lags in the state)
+    paper: bool = False  # config/paper.py's options: none of the package's additions, as in the C
 
 
 CASES = (
     Case("euler/linear, z=[vy,r] (paper eq. 10)", "euler", "linear", "yaw_rate", "euler"),
+    Case("  the paper's filter alone (config/paper.py)", "euler", "linear", "yaw_rate", "euler", paper=True),
     Case("exact/log, z=[vy,r]", "exact", "log", "yaw_rate", "exact"),
     Case("exact/log, z=[vy,psi] (default, extra)", "exact", "log", "heading", None),
     Case("  with relaxing tires, 0.3 m (extra)", "exact", "log", "heading", None, 0.3),
@@ -94,8 +98,9 @@ def sequence(steps: int, vx: float = 2.0, dt: float = 0.2) -> np.ndarray:
 def filter_arrays(case: Case) -> joint_ekf.FilterArrays:
     """The case's filter with the C's P0 and R; Q is set per candidate."""
     linear = case.stiffness_state == "linear"
-    options = FilterOptions(discretization=case.discretization, stiffness_state=case.stiffness_state,
-                            measurement=case.measurement, gate_threshold=1.0e12)
+    base = PAPER_OPTIONS if case.paper else FilterOptions()
+    options = replace(base, discretization=case.discretization, stiffness_state=case.stiffness_state,
+                      measurement=case.measurement, gate_threshold=1.0e12)
     p0 = 1.0e6 if linear else 4.0
     noise = NoiseParams(measurement_noise=(4.0e-4, 1.0e-4), initial_covariance=(1.0e-2, 1.0e-2, p0, p0))
     vehicle = VehicleParams(relaxation_length=case.relaxation)
@@ -209,6 +214,8 @@ def main(argv: list[str] | None = None) -> int:
     print("-" * len(head))
     print(f"ratio = single-thread objective_kernel / C yardstick (target <= {TARGET_RATIO:g}); batch = "
           "tuning.batch_objective over all threads, per candidate-step (what the tuner pays)")
+    print(f"the kernel's z=[vy,r] state has {layout.YAW_RATE_STATES} entries (the steering offset, gain and heading "
+          "held when not estimated) where the C's has 4; the paper's filter alone is the C's filter in all else")
     return 1 if args.strict and missed else 0
 
 
