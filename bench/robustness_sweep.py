@@ -36,6 +36,7 @@ from drives import (  # noqa: E402
     sine_drive,
     step_change,
     with_body_roll,
+    with_steering_drift,
 )
 from independent_sim import independent_drive  # noqa: E402
 from test_validity import epochs_of  # noqa: E402
@@ -100,6 +101,11 @@ ROWS: dict[str, dict[str, object]] = {
     "GNSS 20 Hz": {"gnss_rate": 20.0},
     "GNSS 20 Hz, errors correlated 0.1 s": {"gnss_rate": 20.0, "noise": replace(NOISE, correlation_time=0.1)},
     "GNSS 1 Hz": {"gnss_rate": 1.0},
+    "GNSS 4 Hz": {"gnss_rate": 4.0},
+    "RTK float 60-90 s (GNSS noise x10), R not told": {"gnss_degraded": (60.0, 90.0, 10.0)},
+    "steering at 10 Hz": {"steering_rate": 10.0},
+    "steering offset drifting 1 deg over 60 s from 40 s": {"steering_drift": (DEG(1.0), 40.0, 100.0)},
+    "steering offset jumping 1 deg at 60 s, 180 s": {"steering_drift": (DEG(1.0), 60.0, 60.0), "duration": 180.0},
     "steering offset 2 deg": {"steering_offset": DEG(2.0)},
     "steering gain +0.5 %": {"steering_scale": 1.005},
     "steering gain -0.5 %": {"steering_scale": 0.995},
@@ -214,10 +220,12 @@ def drive(name: str, seed: int) -> tuple[SimResult, VehicleParams]:
     told = overrides.pop("filter_vehicle", None)  # the estimator configured with other vehicle constants
     overrides.pop("filter_noise", None)  # the estimator's Q/R (row_figures)
     roll = overrides.pop("body_roll", None)  # (gain rad per m/s^2, antenna height m): drives.with_body_roll
+    offset_drift = overrides.pop("steering_drift", None)  # (rad, start s, end s): drives.with_steering_drift
     if name in INDEPENDENT_ROWS:
         return independent_drive(seed, **overrides), told or VehicleParams()
     sim = sine_drive(seed, **overrides)
     result = simulate(sim)
+    result = with_steering_drift(result, *offset_drift) if offset_drift else result
     return (with_body_roll(result, *roll) if roll else result), told or sim.vehicle
 
 

@@ -74,6 +74,16 @@ def with_body_roll(result: SimResult, gain: float, height: float) -> SimResult:
     return replace(result, velocity_enu=velocity)
 
 
+def with_steering_drift(result: SimResult, amount: float, start: float, end: float) -> SimResult:
+    """``result`` with the steering sensor's offset moving by ``amount`` rad from ``start`` to ``end`` s.
+
+    Linearly in between (a sensor warming up), at once when ``end`` is ``start`` (a knock); the wheels do not move.
+    """
+    t = result.steering_time
+    share = (t >= start).astype(float) if end <= start else np.clip((t - start) / (end - start), 0.0, 1.0)
+    return replace(result, steering=result.steering + amount * share)
+
+
 #: GNSS velocity and heading 2x noisier than the default, and the R that describes them (a tuned noisier receiver)
 NOISY_GNSS = SensorNoise(velocity=2.0 * SensorNoise().velocity, heading=2.0 * SensorNoise().heading)
 NOISY_GNSS_R = NoiseParams(measurement_noise=tuple(4.0 * r for r in NoiseParams().measurement_noise))
