@@ -208,6 +208,10 @@ INDEPENDENT_ROWS: dict[str, dict[str, object]] = {
     "independent sim, Magic Formula mu 0.3": {"friction": 0.3},
     "independent sim, Magic Formula mu 0.2": {"friction": 0.2},
     "independent sim, relaxation 0.3 m": {"relaxation_length": 0.3},
+    # a new surface under all four wheels at 75 s: (time, stiffness factor, friction after)
+    "independent sim, surface -30 % and mu 0.5 at 75 s, 180 s": {"duration": 180.0, "surface": (75.0, 0.7, 0.5)},
+    "independent sim, surface +30 % at 75 s, 180 s": {"duration": 180.0, "surface": (75.0, 1.3, 0.8)},
+    "independent sim, surface -40 % and mu 0.3 at 75 s, 180 s": {"duration": 180.0, "surface": (75.0, 0.6, 0.3)},
     "independent sim, relaxation 0.3 m, set": {"relaxation_length": 0.3,
                                                "filter_vehicle": VehicleParams(relaxation_length=0.3)},
 }

@@ -34,18 +34,28 @@ def magic_formula(slip: float, stiffness: float, peak: float) -> float:
 def independent_drive(seed: int, *, speed: float = 2.0, amplitude_deg: float = 15.0, period: float = 6.0,
                       duration: float = 120.0, gnss_rate: float = 5.0, friction: float = 0.8,
                       relaxation_length: float = 0.0, cf: float = 8000.0, cr: float = 10000.0,
-                      vehicle: VehicleParams | None = None) -> SimResult:
-    """A sine-steer drive at constant speed (the identification drive's shape) through this simulator."""
+                      vehicle: VehicleParams | None = None,
+                      surface: tuple[float, float, float] | None = None) -> SimResult:
+    """A sine-steer drive at constant speed (the identification drive's shape) through this simulator.
+
+    ``surface``: (time s, stiffness factor, friction): from that time on both tires' cornering stiffness is
+    the factor times cf, cr and their friction the one given (a new surface under all four wheels at once).
+    """
     vehicle = vehicle or VehicleParams()
     m, iz, lf, lr = vehicle.mass, vehicle.yaw_inertia, vehicle.lf, vehicle.lr
     load_f = m * GRAVITY * lr / (lf + lr) / 2.0  # static load of one front tire
     load_r = m * GRAVITY * lf / (lf + lr) / 2.0
     amplitude, omega = math.radians(amplitude_deg), 2.0 * math.pi / period
 
+    def tires(t: float) -> tuple[float, float]:
+        """(stiffness factor, friction) at time t."""
+        return (surface[1], surface[2]) if surface is not None and t >= surface[0] else (1.0, friction)
+
     def steady_forces(t: float, vy: float, r: float) -> tuple[float, float]:
         alpha_f = amplitude * math.sin(omega * t) - (vy + lf * r) / speed
         alpha_r = (lr * r - vy) / speed
-        return (magic_formula(alpha_f, cf, friction * load_f), magic_formula(alpha_r, cr, friction * load_r))
+        factor, mu = tires(t)
+        return (magic_formula(alpha_f, factor * cf, mu * load_f), magic_formula(alpha_r, factor * cr, mu * load_r))
 
     def rhs(t: float, s: np.ndarray) -> list[float]:
         vy, r = s[0], s[1]
@@ -63,13 +73,14 @@ def independent_drive(seed: int, *, speed: float = 2.0, amplitude_deg: float = 1
     if not solution.success:
         raise RuntimeError(f"independent simulator: {solution.message}")
     vy, r, psi = solution.y[0], solution.y[1], solution.y[2]
-    return _sensors(seed, t, vy, r, psi, speed, amplitude, omega, duration, vehicle, cf, cr)
+    factor = np.array([tires(ti)[0] for ti in t])
+    return _sensors(seed, t, vy, r, psi, speed, amplitude, omega, duration, vehicle, cf * factor, cr * factor)
 
 
 def _sensors(seed: int, t: np.ndarray, vy: np.ndarray, r: np.ndarray, psi: np.ndarray, speed: float,
-             amplitude: float, omega: float, duration: float, vehicle: VehicleParams, cf: float,
-             cr: float) -> SimResult:
-    """GNSS (antenna velocity in ENU, heading) and steering samples with the project's sensor noise."""
+             amplitude: float, omega: float, duration: float, vehicle: VehicleParams, cf: np.ndarray,
+             cr: np.ndarray) -> SimResult:
+    """GNSS (antenna velocity in ENU, heading) and steering samples with the project's sensor noise; cf, cr per sample."""
     noise, rng = SensorNoise(), np.random.default_rng([seed, 7919])
     vx_antenna, vy_antenna = speed - r * vehicle.antenna_y, vy + r * vehicle.antenna_x
     east = vx_antenna * np.cos(psi) - vy_antenna * np.sin(psi)
