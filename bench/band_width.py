@@ -22,24 +22,17 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 
-from drives import run_drive  # noqa: E402
-from robustness_sweep import ALL_ROWS, _with, drive  # noqa: E402
-from test_validity import epochs_of  # noqa: E402
+from robustness_sweep import ALL_ROWS, _with, judged_seed  # noqa: E402
 
-from transplanter_ident.config.parameters import EstimatorConfig, FilterOptions, ValiditySettings  # noqa: E402
+from transplanter_ident.config.parameters import FilterOptions  # noqa: E402
 from transplanter_ident.ekf.layout import O_CF, O_CF_STD, O_CR, O_CR_STD  # noqa: E402
-from transplanter_ident.epochs.settings import steering_sensor  # noqa: E402
-from transplanter_ident.evaluation.validity import decide_sequence  # noqa: E402
 
 
 def row_z(name: str, seeds: int, options: FilterOptions) -> tuple[np.ndarray, np.ndarray, float]:
     """(z of every valid epoch after 30 s, z at each drive's last valid epoch, share of valid epochs), Cf and Cr columns."""
     pooled, last, shares = [], [], []
     for seed in range(seeds):
-        result, told = drive(name, seed)
-        config = EstimatorConfig(vehicle=told, options=options)
-        run = run_drive(result, config)
-        valid = decide_sequence(config, ValiditySettings(), epochs_of(result, **steering_sensor(told)), run.outputs)
+        run, valid = judged_seed(name, seed, options)
         after = run.t >= 30.0
         kept = valid & after
         o = run.outputs

@@ -31,6 +31,7 @@ from drives import (  # noqa: E402
     NOISY_GNSS,
     NOISY_GNSS_R,
     VARYING_SPEED,
+    Run,
     drift,
     run_drive,
     sine_drive,
@@ -239,17 +240,24 @@ def with_stiffness_noise(noise: NoiseParams, factor: float) -> NoiseParams:
     return replace(noise, process_noise=(q[0], q[1], factor * q[2], factor * q[3]))
 
 
+def judged_seed(name: str, seed: int, options: FilterOptions, settings: ValiditySettings | None = None,  # noqa: PLR0913
+                stiffness_noise: float = 1.0, noise_fields: tuple[str, ...] = ()) -> tuple[Run, np.ndarray]:
+    """One seed of a row filtered with ``options`` (and the row's vehicle and Q/R), and its valid flag per epoch."""
+    result, told = drive(name, seed)
+    noise = with_stiffness_noise(ALL_ROWS[name].get("filter_noise", NoiseParams()), stiffness_noise)
+    config = EstimatorConfig(vehicle=told, options=options, noise=_with(noise, list(noise_fields)))
+    run = run_drive(result, config)
+    valid = decide_sequence(config, settings or ValiditySettings(), epochs_of(result, **steering_sensor(told)),
+                            run.outputs)
+    return run, valid
+
+
 def row_figures(name: str, seeds: int, options: FilterOptions, settings: ValiditySettings | None = None,  # noqa: PLR0913
                 stiffness_noise: float = 1.0, noise_fields: tuple[str, ...] = ()) -> str:
     """One row's figures; ``noise_fields``: NoiseParams ``NAME=VALUE`` pairs set on the row's (``--noise``)."""
-    settings = settings or ValiditySettings()
     shares, finals = [], []
     for seed in range(seeds):
-        result, told = drive(name, seed)
-        noise = with_stiffness_noise(ALL_ROWS[name].get("filter_noise", NoiseParams()), stiffness_noise)
-        config = EstimatorConfig(vehicle=told, options=options, noise=_with(noise, list(noise_fields)))
-        run = run_drive(result, config)
-        valid = decide_sequence(config, settings, epochs_of(result, **steering_sensor(told)), run.outputs)
+        run, valid = judged_seed(name, seed, options, settings, stiffness_noise, noise_fields)
         after = run.t >= 30.0
         front, rear = run.covered()
         missed = ~(front & rear)
