@@ -22,6 +22,7 @@ from drives import (
     run_drive,
     sine_drive,
     step_change,
+    with_steering_drift,
 )
 from helpers import simulate_epochs
 from test_ekf import epoch_list
@@ -228,10 +229,7 @@ def knocked_sensor(step_deg: float, seed: int, options: FilterOptions) -> tuple[
 
     Returns (valid from 60 s on, band covers both stiffnesses from 60 s on, the run).
     """
-    result = simulate(sine_drive(seed, duration=180.0))
-    offset = math.radians(step_deg)
-    knocked = replace(result, steering=np.where(result.steering_time >= 60.0, result.steering + offset,
-                                                result.steering))
+    knocked = with_steering_drift(simulate(sine_drive(seed, duration=180.0)), math.radians(step_deg), 60.0, 60.0)
     config = EstimatorConfig(options=options)
     run = run_drive(knocked, config)
     after = run.t >= 60.0
