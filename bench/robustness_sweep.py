@@ -33,7 +33,7 @@ from drives import (  # noqa: E402
     VARYING_SPEED,
     Run,
     drift,
-    run_drive,
+    judged_run,
     sine_drive,
     step_change,
     with_body_roll,
@@ -50,7 +50,6 @@ from transplanter_ident.config.parameters import (  # noqa: E402
     VehicleParams,
 )
 from transplanter_ident.epochs.settings import steering_sensor  # noqa: E402
-from transplanter_ident.evaluation.validity import decide_sequence  # noqa: E402
 from transplanter_ident.sim.signals import (  # noqa: E402
     StiffnessSchedule,
     field_work,
@@ -246,10 +245,7 @@ def judged_seed(name: str, seed: int, options: FilterOptions, settings: Validity
     result, told = drive(name, seed)
     noise = with_stiffness_noise(ALL_ROWS[name].get("filter_noise", NoiseParams()), stiffness_noise)
     config = EstimatorConfig(vehicle=told, options=options, noise=_with(noise, list(noise_fields)))
-    run = run_drive(result, config)
-    valid = decide_sequence(config, settings or ValiditySettings(), epochs_of(result, **steering_sensor(told)),
-                            run.outputs)
-    return run, valid
+    return judged_run(result, config, lambda r: epochs_of(r, **steering_sensor(told)), settings)
 
 
 def row_figures(name: str, seeds: int, options: FilterOptions, settings: ValiditySettings | None = None,  # noqa: PLR0913

@@ -233,14 +233,14 @@ def pooled_validity_figures(drives: Iterable[tuple[SimResult, EstimatorConfig]],
                             epochs_for: Callable[[SimResult], EpochArrays], start: float = 30.0,
                             settings: ValiditySettings | None = None) -> ValidityFigures:
     """:func:`validity_figures` of drives each filtered with its own configuration (validity: the defaults)."""
-    settings = settings or ValiditySettings()
+    return judged_figures((judged_run(result, config, epochs_for, settings) for result, config in drives), start)
 
-    def judged() -> Iterable[tuple[Run, np.ndarray]]:
-        for result, config in drives:
-            run = run_drive(result, config)
-            yield run, decide_sequence(config, settings, epochs_for(result), run.outputs)
 
-    return judged_figures(judged(), start)
+def judged_run(result: SimResult, config: EstimatorConfig, epochs_for: Callable[[SimResult], EpochArrays],
+               settings: ValiditySettings | None = None) -> tuple[Run, np.ndarray]:
+    """``result`` filtered with ``config``, and its valid flag per epoch decided on ``epochs_for(result)``."""
+    run = run_drive(result, config)
+    return run, decide_sequence(config, settings or ValiditySettings(), epochs_for(result), run.outputs)
 
 
 def judged_figures(judged: Iterable[tuple[Run, np.ndarray]], start: float = 30.0) -> ValidityFigures:

@@ -15,12 +15,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from drives import judged_figures, run_drive, sine_drive
+from drives import Run, judged_figures, judged_run, sine_drive
 from test_validity import epochs_of
 
 from transplanter_ident.config.params_file import EstimatorParams, load_params
 from transplanter_ident.ekf.layout import O_CF, O_CR
-from transplanter_ident.evaluation.validity import decide_sequence
 from transplanter_ident.sim.simulator import simulate
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
@@ -29,13 +28,10 @@ PROFILE = load_params([CONFIG_DIR / "estimator.yaml", CONFIG_DIR / "uncalibrated
 SEEDS = range(6)
 
 
-def judged(params: EstimatorParams, steering_scale: float) -> list:
-    out = []
-    for seed in SEEDS:
-        result = simulate(sine_drive(seed, steering_scale=steering_scale))
-        run = run_drive(result, params.config)
-        out.append((run, decide_sequence(params.config, params.validity, epochs_of(result), run.outputs)))
-    return out
+def judged(params: EstimatorParams, steering_scale: float) -> list[tuple[Run, np.ndarray]]:
+    """The identification drives with that steering gain, filtered and decided with ``params``."""
+    return [judged_run(simulate(sine_drive(seed, steering_scale=steering_scale)), params.config, epochs_of,
+                       params.validity) for seed in SEEDS]
 
 
 def test_the_profile_sets_the_two_uncertainties_and_the_wider_band() -> None:

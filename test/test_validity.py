@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 import pytest
-from drives import TRUE_CF, TRUE_CR, Run, run_drive, sine_drive
+from drives import TRUE_CF, TRUE_CR, Run, judged_run, run_drive, sine_drive
 from helpers import sim_samples
 from independent_sim import independent_drive
 
@@ -103,12 +103,7 @@ def clean_runs(config: EstimatorConfig) -> tuple[tuple[Run, np.ndarray], ...]:
     """The clean drives (seeds 0-9) filtered and decided with ``config``."""
     if config == CONFIG:
         return scenario_runs("clean")
-    out = []
-    for seed in SEEDS:
-        result = simulate(sine_drive(seed))
-        run = run_drive(result, config)
-        out.append((run, decide_sequence(config, SETTINGS, epochs_of(result), run.outputs)))
-    return tuple(out)
+    return tuple(judged_run(simulate(sine_drive(seed)), config, epochs_of, SETTINGS) for seed in SEEDS)
 
 
 def pooled_error_sd(runs: tuple[tuple[Run, np.ndarray], ...]) -> tuple[float, float]:
