@@ -14,7 +14,13 @@ from dataclasses import dataclass, replace
 import numpy as np
 from helpers import course_epochs, epochs_from_result, sim_samples
 
-from transplanter_ident.config.parameters import EstimatorConfig, NoiseParams, ValiditySettings, VehicleParams
+from transplanter_ident.config.parameters import (
+    EstimatorConfig,
+    FilterOptions,
+    NoiseParams,
+    ValiditySettings,
+    VehicleParams,
+)
 from transplanter_ident.ekf.joint_ekf import run_sequence
 from transplanter_ident.ekf.layout import (
     O_CF,
@@ -32,6 +38,18 @@ from transplanter_ident.epochs.epoch import EpochArrays
 from transplanter_ident.evaluation.validity import decide_sequence
 from transplanter_ident.sim.signals import StiffnessSchedule, multisine_steering, sine_steering
 from transplanter_ident.sim.simulator import SensorNoise, SimConfig, SimResult, simulate
+
+#: config/exact_calibration.yaml's validity: the narrower band of the defaults until session 38
+EXACT_VALIDITY = ValiditySettings(max_rel_std=0.05)
+
+
+def exact_claim(options: FilterOptions | None = None) -> FilterOptions:
+    """``options`` (the defaults') claiming no timing or steering gain error left (config/exact_calibration.yaml).
+
+    The tests that show what a mechanism catches compare with this claim: the defaults' band already holds part
+    of what those mechanisms are for.
+    """
+    return replace(options or FilterOptions(), delay_uncertainty=0.0, steering_scale_uncertainty=0.0)
 
 TRUE_CF, TRUE_CR = 8000.0, 10000.0
 #: a 40 % drop of both stiffnesses at 75 s (a wet patch; 150 s drives)

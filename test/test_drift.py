@@ -59,14 +59,15 @@ def test_a_drifting_stiffness_is_flagged_and_named() -> None:
     """-40 % over 4 min at 2 m/s, 8 seeds: the band misses less, and the reason says why.
 
     The filter without the slow change's test (whose alarms catch part of the drift): in <= 15 % of the
-    valid epochs after 30 s and <= 1/3 of what it missed without the drift test (measured 10.9 % against
-    45.4 %; valid 28 % against 85 %). With the defaults (both): <= 15 % (measured 11.9 %, 18.2 % without
-    the drift test). 15 % is what the tests achieve, not what a band promises (~5-9 %): the bench's
-    drift rows stay bold in the README, and raising the stiffness random walk is the user's lever.
+    valid epochs after 30 s and <= 1/3 of what it missed without the drift test, which misses >= 15 %
+    (measured 1.4 % against 18.1 %; valid 30 % against 87 %; with the band of config/exact_calibration.yaml,
+    the defaults until session 38, 10.9 % against 45.4 %). With the defaults (both): <= 15 % (measured 1.9 %;
+    11.9 % with the exact claim). 15 % is what the tests achieved with the narrower band, not what a band
+    promises (~5-9 %); raising the stiffness random walk is the user's lever.
     """
     with_test, valid_with = missed_and_valid("drift", SETTINGS, STEP_TEST_ONLY)
     without, valid_without = missed_and_valid("drift", OFF, STEP_TEST_ONLY)
-    assert without >= 0.3, without  # the drive shows the failure the test is for
+    assert without >= 0.15, without  # the drive shows the failure the test is for
     assert with_test <= 0.15 and with_test <= without / 3.0, (with_test, without)
     assert valid_with < valid_without
     defaults, _ = missed_and_valid("drift", SETTINGS)
@@ -87,14 +88,15 @@ def test_a_surface_changing_over_a_minute_raises_the_slow_change_alarm() -> None
 
     The step's test alone lets the estimate lag by several std (its updates push by ~0.3 std each: no
     alarm) while valid. Required, pooled over the seeds, the valid epochs after 30 s outside +-2 sigma:
-    with the slow change's test <= 18 % and <= 0.6 x without it (measured: up 14.8 % against 28.6 %,
-    down 8.2 % against 20.7 %; without it >= 15 %, the failure shown); an alarm after 75 s on >= 6 of the
-    8 drives; and the median final error at most half of the step test's alone.
+    with the slow change's test <= 18 % and <= 0.6 x without it (measured: up 7.6 % against 20.4 %,
+    down 2.4 % against 9.5 %; with the exact claim's band, config/exact_calibration.yaml, 14.8 % against
+    28.6 % and 8.2 % against 20.7 %; without it >= 8 %, the failure shown); an alarm after 75 s on >= 6 of
+    the 8 drives; and the median final error at most half of the step test's alone (2.9 / 6.9, 1.2 / 2.8 %).
     """
     for name in RAMPS:
         with_ramp, _ = missed_and_valid(name, SETTINGS)
         step_only, _ = missed_and_valid(name, SETTINGS, STEP_TEST_ONLY)
-        assert step_only >= 0.15, (name, step_only)
+        assert step_only >= 0.08, (name, step_only)
         assert with_ramp <= 0.18 and with_ramp <= 0.6 * step_only, (name, with_ramp, step_only)
         alarmed = sum(bool(np.any((run.outputs[:, O_CHANGE] > 0.0) & (run.t > 75.0))) for run, _ in runs(name))
         assert alarmed >= 6, (name, alarmed)

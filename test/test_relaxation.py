@@ -140,15 +140,16 @@ def test_a_configured_relaxation_length_makes_relaxing_drives_right() -> None:
 
     Configured: valid in >= 70 % of the epochs (measured 94 %), <= 5 % of those outside +-2 sigma (0),
     final |error| median <= 3 % (1.0 %) and worst <= 6 % (3.4 %). Not configured (seeds 0-2, so that
-    this test can fail), and without the validity's relaxation check (test_relaxation_measure.py): >= 50 %
-    of the valid epochs outside +-2 sigma (measured 82 % over seeds 0-5).
+    this test can fail), and without the validity's relaxation check (test_relaxation_measure.py): >= 30 %
+    of the valid epochs outside +-2 sigma (measured 39 % on seeds 0-2; 82 % over seeds 0-5 with the narrower
+    band of config/exact_calibration.yaml, the defaults until session 38).
     """
     told = pooled_validity_figures(relaxing_drives(0.3), epochs_of)
     assert told.valid >= 0.7 and told.missed <= 0.05
     assert np.median(told.finals) <= 0.03 and max(told.finals) <= 0.06
     unchecked = ValiditySettings(max_relaxation_sigmas=100.0, max_relaxation_shift=100.0)
     untold = pooled_validity_figures(relaxing_drives(0.0, range(3)), epochs_of, settings=unchecked)
-    assert untold.valid > 0.0 and untold.missed >= 0.5
+    assert untold.valid > 0.0 and untold.missed >= 0.3
 
 
 def test_the_independent_simulators_relaxing_drives_are_right() -> None:

@@ -155,14 +155,15 @@ def _figures(runs: list, settings: ValiditySettings) -> tuple[float, float]:
 def test_relaxing_drives_are_seldom_valid_and_wrong(relaxing: list) -> None:
     """0.3 m left out, 8 seeds, from 30 s on: valid and outside +-2 sigma in at most 5 % of the epochs.
 
-    And in at most a tenth of the share without the check (measured 0.8 % against 73 %; 5 % with
+    And in at most a tenth of the share without the check, which is >= 30 % (measured 1.2 % against 41 %; 0.8 %
+    against 73 % with the narrower band of config/exact_calibration.yaml, the defaults until session 38; 5 % with
     validity.max_relaxation_shift 1.5); the reason names vehicle.relaxation_length.
     """
     valid, missed = _figures(relaxing, ValiditySettings())
     valid_off, missed_off = _figures(relaxing, CHECK_OFF)
     print(f"\nrelaxation 0.3 m: valid {valid:.2f}, of those missed {missed:.3f}; without the check {valid_off:.2f}, "
           f"{missed_off:.3f}")
-    assert valid_off * missed_off >= 0.5  # the condition this test is about
+    assert valid_off * missed_off >= 0.3  # the condition this test is about
     assert valid * missed <= 0.05 and valid * missed <= 0.1 * valid_off * missed_off
     result, config, run = relaxing[0]
     monitor = monitor_for(config, ValiditySettings())

@@ -142,12 +142,13 @@ def test_with_the_play_configured_the_estimate_is_right(play: float) -> None:
 def test_a_tenth_of_a_degree_left_out_is_confidently_wrong() -> None:
     """Why the parameter exists: 0.1 deg left out, the estimate is valid and wrong.
 
-    Valid in >= 50 % of the epochs and >= 50 % of those miss (measured 83 %, 86 %); the median final |error|
-    is >= 5 % (Cf 8.8 %). The filter's measure of a play (play_signature.py), +-0.04 deg after 2 minutes, cannot
+    Valid in >= 50 % of the epochs and >= 25 % of those miss (measured 86 %, 39 %; 83 %, 86 % with the narrower
+    band of config/exact_calibration.yaml, the defaults until session 38); the median final |error| is >= 5 %
+    (Cf 8.8 %). The filter's measure of a play (play_signature.py), +-0.04 deg after 2 minutes, cannot
     tell 0.1 deg from none early enough.
     """
     figures = _figures(DEG(0.1), 0.0)
-    assert figures.valid >= 0.5 and figures.missed >= 0.5 and figures.median >= 0.05, figures
+    assert figures.valid >= 0.5 and figures.missed >= 0.25 and figures.median >= 0.05, figures
 
 
 

@@ -94,12 +94,12 @@ class DelayRun:
         """The keys to write (key -> (value, the line that says where it comes from)).
 
         ``gnss.delay``, and ``ekf.delay_uncertainty`` when the estimate has a std: that std combined
-        with the configured uncertainty (a latency's spread, say), capped at the schema's 1 s (a delay
+        with the configured uncertainty (a latency's spread, say; none when it is not stated), capped at the schema's 1 s (a delay
         the objective does not pin: the std then holds a bias no band would narrow).
         """
         return {"gnss.delay": (self.estimate.delay, self.estimate.format(objective)),
                 **held_uncertainty("ekf.delay_uncertainty", self.estimate.std,
-                                   self.params.config.options.delay_uncertainty, 1.0, "the estimated gnss.delay",
+                                   max(self.params.config.options.delay_uncertainty, 0.0), 1.0, "the estimated gnss.delay",
                                    lambda v: f"{1e3 * v:.1f} ms")}
 
 

@@ -237,17 +237,18 @@ SCHEMA: tuple[Param, ...] = (
     _float("ekf.saturation_memory", 300.0, "s", "time constant of the tires' two measures: that one (a surface "
            "change restarts it) and of a relaxation length left out of vehicle.relaxation_length (/diagnostics "
            "relaxation_estimate_m)", 1.0, 1.0e5),
-    _float("ekf.delay_uncertainty", 0.0, "s", "1-sigma of the GNSS timing error left after gnss.delay (a driver "
-           "stamping on arrival: its latency's spread): the reported Cf, Cr std hold the bias it causes (~2 % per "
-           "ms at 2 m/s; /diagnostics delay_sensitivity_per_ms); 0: off", 0.0, 1.0),
+    _float("ekf.delay_uncertainty", -1.0, "s", "1-sigma of the GNSS timing error left after gnss.delay (a driver "
+           "stamping on arrival: its latency's spread): the Cf, Cr std hold the bias it causes (~2 % per ms at 2 "
+           "m/s; /diagnostics delay_sensitivity_per_ms); < 0: not stated: 1 ms is held (what a heading's delay "
+           "measure cannot flag), and a course, which cannot show a timing error, is never valid", -1.0, 1.0),
     _float("ekf.steering_play_uncertainty", 0.0, "rad", "1-sigma of the steering linkage's play left after "
            "vehicle.steering_play (tuner --estimate-steering-play prints its estimate's): the reported Cf, Cr std hold "
            "the bias it causes (~90 % per degree at 2 m/s on a +-15 deg sine; /diagnostics "
            "play_sensitivity_per_deg); 0: off", 0.0, 0.05),
-    _float("ekf.steering_scale_uncertainty", 0.0, "", "relative 1-sigma of the steering sensor's gain left after "
+    _float("ekf.steering_scale_uncertainty", 0.003, "", "relative 1-sigma of the steering sensor's gain left after "
            "vehicle.steering_scale (tuner --estimate-steering-scale writes its estimate's): the reported Cf, Cr std "
-           "hold the bias it causes (~5-8 % per % at 2 m/s; /diagnostics scale_sensitivity_per_percent); 0: off",
-           0.0, 0.2),
+           "hold the bias it causes (~5-8 % per % at 2 m/s; /diagnostics scale_sensitivity_per_percent); 0: off; "
+           "0.003: what a calibration leaves", 0.0, 0.2),
     _float("ekf.yaw_inertia_uncertainty", 0.0, "", "relative 1-sigma of the yaw inertia left after vehicle.iz (tuner "
            "--estimate-yaw-inertia writes it): the Cf, Cr std hold the bias it causes (~0.8 % per %); 0: off", 0.0, 1.0),
     _float("ekf.relaxation_uncertainty", 0.0, "m", "1-sigma of the tire relaxation length left after "
@@ -313,8 +314,8 @@ SCHEMA: tuple[Param, ...] = (
     # the validity decision (evaluation/validity.py; config.parameters.ValiditySettings)
     _float("validity.window", 10.0, "s", "data span over which excitation and innovation consistency are judged",
            1.0, 600.0, read_only=False),
-    _float("validity.max_rel_std", 0.05, "", "relative 1-sigma of Cf and Cr above which the estimate is not "
-           "valid", 1.0e-4, 10.0, read_only=False),
+    _float("validity.max_rel_std", 0.08, "", "relative 1-sigma of Cf and Cr above which the estimate is not valid "
+           "(the band holds the timing and steering gain left after calibration)", 1.0e-4, 10.0, read_only=False),
     _float("validity.min_steering_std", 0.02, "rad", "steering standard deviation over the window needed for "
            "excitation (or the yaw-rate one)", 0.0, 1.6, read_only=False),
     _float("validity.min_yaw_rate_std", 0.02, "rad/s", "yaw-rate standard deviation over the window needed "

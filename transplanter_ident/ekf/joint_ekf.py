@@ -163,7 +163,7 @@ class FilterArrays:
         settings[S_NOISE_MEMORY] = options.noise_memory
         settings[S_MAX_NOISE_SCALE] = options.max_noise_scale
         settings[S_NOISE_CORRELATION] = 1.0 if options.noise_correlation else 0.0
-        settings[S_DELAY_UNCERTAINTY] = options.delay_uncertainty
+        settings[S_DELAY_UNCERTAINTY] = options.timing_uncertainty
         settings[S_SCALE_UNCERTAINTY] = options.steering_scale_uncertainty
         settings[S_PLAY_UNCERTAINTY] = options.steering_play_uncertainty
         settings[S_INERTIA_UNCERTAINTY] = options.yaw_inertia_uncertainty
