@@ -24,6 +24,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import pytest
 from drives import Run, judged_figures, run_course, sine_drive, sine_steering
 from helpers import QUICK_TUNE, assembler_settings, course_epochs, run_command
 from independent_sim import independent_drive
@@ -88,10 +89,15 @@ def test_a_far_prior_at_low_speed_converges_instead_of_stalling() -> None:
         assert all(abs(e) <= 0.10 for e in run.final_errors()), run.final_errors()
 
 
-def test_without_a_stated_timing_uncertainty_it_is_never_valid_and_says_why() -> None:
-    """A GNSS 10 ms late moves the stiffness ~12 % and the course cannot show it (the tuner's delay NLL is flat)."""
+@pytest.mark.parametrize("uncertainty", [0.0, FilterOptions().delay_uncertainty])
+def test_without_a_stated_timing_uncertainty_it_is_never_valid_and_says_why(uncertainty: float) -> None:
+    """A GNSS 10 ms late moves the stiffness ~12 % and the course cannot show it (the tuner's delay NLL is flat).
+
+    None stated (the default, < 0: a heading holds 1 ms then, as its delay measure flags the rest) or 0 alike.
+    """
+    assert FilterOptions().delay_uncertainty < 0.0
     result = simulate(sine_drive(0, gnss_delay=0.010))
-    run, valid, config = course_run(result, options=replace(COURSE, delay_uncertainty=0.0))
+    run, valid, config = course_run(result, options=replace(COURSE, delay_uncertainty=uncertainty))
     assert not valid.any()
     assert max(abs(e) for e in run.final_errors()) > 0.08  # what the reason guards against: wrong, and precise-looking
     assert any("timing" in r for r in monitor_for(config, RELAXED).setup)

@@ -200,3 +200,6 @@ def test_the_calibration_written_holds_the_std_with_the_configured_uncertainty()
     unpinned = DelayRun(replace(run.estimate, std=math.inf), params, []).calibration("nll")
     assert unpinned["ekf.delay_uncertainty"][0] == 1.0  # the schema's bound: no band narrows on it
     assert set(DelayRun(replace(run.estimate, std=math.nan), params, []).calibration("mae")) == {"gnss.delay"}
+    unstated = DelayRun(run.estimate, configured, []).calibration("nll")  # the default: none stated, the std alone
+    assert configured.config.options.delay_uncertainty < 0.0
+    assert unstated["ekf.delay_uncertainty"][0] == pytest.approx(0.0015)
