@@ -6,7 +6,7 @@ package's simulator or the independent one (test/independent_sim.py: Magic Formu
 its velocity and steering streams only, filtered with the defaults and ``ekf.measurement: course``,
 ``ekf.delay_uncertainty`` as given (one antenna's course cannot show a GNSS timing error, so the
 validity needs it stated). From 30 s on, per row over ``--seeds`` seeds: the share of epochs valid
-with ``validity.max_rel_std`` 0.05 (the default) and 0.08, the share of those valid epochs outside
+with ``validity.max_rel_std`` 0.05 (the default until session 38) and 0.08 (since), the share of those valid epochs outside
 +-2 sigma, the share of all epochs outside it, the final |error| (median, worst) and the final
 relative 1-sigma (median, the larger of Cf's and Cr's).
 
