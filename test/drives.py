@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 from helpers import course_epochs, epochs_from_result, sim_samples
@@ -21,6 +22,7 @@ from transplanter_ident.config.parameters import (
     ValiditySettings,
     VehicleParams,
 )
+from transplanter_ident.config.params_file import load_params
 from transplanter_ident.ekf.joint_ekf import run_sequence
 from transplanter_ident.ekf.layout import (
     O_CF,
@@ -39,17 +41,22 @@ from transplanter_ident.evaluation.validity import decide_sequence
 from transplanter_ident.sim.signals import StiffnessSchedule, multisine_steering, sine_steering
 from transplanter_ident.sim.simulator import SensorNoise, SimConfig, SimResult, simulate
 
-#: config/exact_calibration.yaml's validity: the narrower band of the defaults until session 38
-EXACT_VALIDITY = ValiditySettings(max_rel_std=0.05)
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
+#: config/exact_calibration.yaml over config/estimator.yaml: no timing or steering gain error held, the narrower
+#: band (the defaults until session 38)
+EXACT = load_params([CONFIG_DIR / "estimator.yaml", CONFIG_DIR / "exact_calibration.yaml"])
+EXACT_VALIDITY = EXACT.validity
 
 
 def exact_claim(options: FilterOptions | None = None) -> FilterOptions:
-    """``options`` (the defaults') claiming no timing or steering gain error left (config/exact_calibration.yaml).
+    """``options`` (the defaults') with the exact claim's timing and steering gain uncertainties.
 
     The tests that show what a mechanism catches compare with this claim: the defaults' band already holds part
     of what those mechanisms are for.
     """
-    return replace(options or FilterOptions(), delay_uncertainty=0.0, steering_scale_uncertainty=0.0)
+    exact = EXACT.config.options
+    return replace(options or FilterOptions(), delay_uncertainty=exact.delay_uncertainty,
+                   steering_scale_uncertainty=exact.steering_scale_uncertainty)
 
 TRUE_CF, TRUE_CR = 8000.0, 10000.0
 #: a 40 % drop of both stiffnesses at 75 s (a wet patch; 150 s drives)

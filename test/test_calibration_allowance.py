@@ -14,19 +14,15 @@ On clean drives the defaults stay available (valid >= 85 %: 99.7 % measured, 97 
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
-from drives import Run, judged_figures, judged_run, sine_drive
+from drives import CONFIG_DIR, EXACT, Run, judged_figures, judged_run, sine_drive
 from test_validity import epochs_of
 
 from transplanter_ident.config.params_file import EstimatorParams, load_params
 from transplanter_ident.ekf.layout import O_CF, O_CR
 from transplanter_ident.sim.simulator import simulate
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "config"
 DEFAULTS = load_params([CONFIG_DIR / "estimator.yaml"])
-EXACT = load_params([CONFIG_DIR / "estimator.yaml", CONFIG_DIR / "exact_calibration.yaml"])
 SEEDS = range(6)
 
 

@@ -93,7 +93,7 @@ def test_a_far_prior_at_low_speed_converges_instead_of_stalling() -> None:
 def test_without_a_stated_timing_uncertainty_it_is_never_valid_and_says_why(uncertainty: float) -> None:
     """A GNSS 10 ms late moves the stiffness ~12 % and the course cannot show it (the tuner's delay NLL is flat).
 
-    None stated (the default, < 0: a heading holds 1 ms then, as its delay measure flags the rest) or 0 alike.
+    None stated (the default, < 0: a heading then holds 1 ms, and its delay measure flags 10 ms and more) or 0 alike.
     """
     assert FilterOptions().delay_uncertainty < 0.0
     result = simulate(sine_drive(0, gnss_delay=0.010))

@@ -8,16 +8,16 @@ from __future__ import annotations
 
 import functools
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
-from drives import TRUE_CF, TRUE_CR, Run, judged_run, run_drive, sine_drive
+from drives import TRUE_CF, TRUE_CR, Run, exact_claim, judged_run, run_drive, sine_drive
 from helpers import sim_samples
 from independent_sim import independent_drive
 
 from transplanter_ident.config.parameters import (
     EstimatorConfig,
-    FilterOptions,
     ValiditySettings,
     VehicleParams,
 )
@@ -94,9 +94,9 @@ def test_clean_drives_are_valid_most_of_the_time() -> None:
     assert np.mean(fractions) >= 0.70, fractions
 
 
-#: the filter without the tire allowance (the Cf, Cr std holding the bias of a tire at ekf.min_friction)
-NO_ALLOWANCE = EstimatorConfig(options=FilterOptions(min_friction=0.0, delay_uncertainty=0.0,
-                                                    steering_scale_uncertainty=0.0))
+#: the filter without the allowances (the Cf, Cr std holding the bias of a tire at ekf.min_friction, of 1 ms of timing
+#: and of 0.3 % of steering gain)
+NO_ALLOWANCE = EstimatorConfig(options=replace(exact_claim(), min_friction=0.0))
 
 
 @functools.cache

@@ -94,8 +94,9 @@ class DelayRun:
         """The keys to write (key -> (value, the line that says where it comes from)).
 
         ``gnss.delay``, and ``ekf.delay_uncertainty`` when the estimate has a std: that std combined
-        with the configured uncertainty (a latency's spread, say; none when it is not stated), capped at the schema's 1 s (a delay
-        the objective does not pin: the std then holds a bias no band would narrow).
+        with the configured uncertainty (a latency's spread, say; none when it is not stated), capped
+        at the schema's 1 s (a delay the objective does not pin: the std then holds a bias no band
+        would narrow).
         """
         return {"gnss.delay": (self.estimate.delay, self.estimate.format(objective)),
                 **held_uncertainty("ekf.delay_uncertainty", self.estimate.std,

@@ -15,7 +15,7 @@ STIFFNESS_STATES = ("log", "linear")
 MEASUREMENTS = ("heading", "yaw_rate", "course")
 
 #: s, the GNSS-steering timing left after calibration that the band holds while ``ekf.delay_uncertainty`` is not
-#: stated (< 0): a heading's delay measure flags 5 ms and more, not what is below (docs/robustness.md)
+#: stated (< 0); a heading's delay measure flags 10 ms and more, seldom 5 (docs/robustness.md)
 ASSUMED_DELAY_UNCERTAINTY = 0.001
 
 

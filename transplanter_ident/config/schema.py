@@ -239,8 +239,8 @@ SCHEMA: tuple[Param, ...] = (
            "relaxation_estimate_m)", 1.0, 1.0e5),
     _float("ekf.delay_uncertainty", -1.0, "s", "1-sigma of the GNSS timing error left after gnss.delay (a driver "
            "stamping on arrival: its latency's spread): the Cf, Cr std hold the bias it causes (~2 % per ms at 2 "
-           "m/s; /diagnostics delay_sensitivity_per_ms); < 0: not stated: 1 ms is held (what a heading's delay "
-           "measure cannot flag), and a course, which cannot show a timing error, is never valid", -1.0, 1.0),
+           "m/s; /diagnostics delay_sensitivity_per_ms); < 0: not stated: 1 ms is held (what a calibration "
+           "leaves), and a course, which cannot show a timing error, is never valid", -1.0, 1.0),
     _float("ekf.steering_play_uncertainty", 0.0, "rad", "1-sigma of the steering linkage's play left after "
            "vehicle.steering_play (tuner --estimate-steering-play prints its estimate's): the reported Cf, Cr std hold "
            "the bias it causes (~90 % per degree at 2 m/s on a +-15 deg sine; /diagnostics "
